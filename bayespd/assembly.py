@@ -1,101 +1,84 @@
-"""Block sparsity patterns over particles and the index maps materials assemble with."""
+"""Stiffness assembly as sums of Gram products K = sum_t A_t^T diag(w_t) A_t.
+
+Every linearised PD stiffness has this form: A is a sparse operator of fixed structure
+(bond extensions, nodal dilatations) whose entries and weights change with the parameters.
+``Gram.matrix`` assembles numerically with scipy (fast, for factorisation); ``Gram.values``
+assembles the same numbers with torch ops on entry pairs (differentiable, more memory).
+"""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
+import scipy.sparse as sp
 import torch
 
-from bayespd.bonds import Bonds
 from bayespd.sparse import Pattern
 
 
-class BlockPattern:
-    """The dof pattern of a matrix made of dim x dim blocks between particle pairs.
+class Gram:
+    """K = A^T diag(w) A for A with entries at (rows[k], cols[k]) and data given per call."""
 
-    ``k, l`` list the coupled particle pairs (any order, duplicates allowed; the diagonal and
-    the transposes are added). Values are assembled per block, shape (n_blocks, dim, dim),
-    and :meth:`values` reorders them onto ``self.pattern`` (CSC order) for the solver.
-    """
+    def __init__(self, rows: np.ndarray, cols: np.ndarray, n_rows: int, n_cols: int):
+        self.order = np.lexsort((cols, rows))  # row-major order of the entries
+        self.rows, self.cols = rows[self.order], cols[self.order]
+        self.shape = (n_rows, n_cols)
+        self.indptr = np.searchsorted(self.rows, np.arange(n_rows + 1))
 
-    def __init__(self, n_nodes: int, dim: int, k: np.ndarray, l: np.ndarray):
-        diag = np.arange(n_nodes)
-        kk = np.concatenate([k, l, diag])
-        ll = np.concatenate([l, k, diag])
-        keys = np.unique(ll * n_nodes + kk)  # column-major: sorted by (l, k)
-        self.n_nodes, self.dim, self._keys = n_nodes, dim, keys
-        bl, bk = np.divmod(keys, n_nodes)
-        # scalar entry (block b, alpha, beta) sits at row dim*bk+alpha, column dim*bl+beta
-        blocks_per_col = np.bincount(bl, minlength=n_nodes)
-        block_ptr = np.concatenate([[0], np.cumsum(blocks_per_col)])
-        rank = np.arange(len(keys)) - block_ptr[bl]
-        a = np.arange(dim)
-        pos = (dim * dim * block_ptr[bl][:, None, None]
-               + a[None, None, :] * dim * blocks_per_col[bl][:, None, None]
-               + dim * rank[:, None, None] + a[None, :, None])
-        perm = np.empty(pos.size, dtype=np.int64)
-        perm[pos.reshape(-1)] = np.arange(pos.size)
-        self._perm = torch.as_tensor(perm)
-        rows = (dim * bk[:, None, None] + a[None, :, None]).repeat(dim, axis=2).reshape(-1)
-        cols = (dim * bl[:, None, None] + a[None, None, :]).repeat(dim, axis=1).reshape(-1)
-        self.pattern = Pattern(rows[perm], cols[perm], n_nodes * dim)
+    def operator(self, data) -> sp.csr_matrix:
+        d = np.asarray(data)[self.order]
+        return sp.csr_matrix((d, self.cols, self.indptr), shape=self.shape)
 
-    @property
-    def n_blocks(self) -> int:
-        return len(self._keys)
+    def matrix(self, data, w) -> sp.csr_matrix:
+        """A^T diag(w) A numerically (data: entries of A in the order given at construction)."""
+        A = self.operator(data)
+        return (A.T @ sp.diags(np.asarray(w)) @ A).tocsr()
 
-    def block(self, k: np.ndarray, l: np.ndarray) -> torch.Tensor:
-        """Block ids of the particle pairs (k, l); every pair must be in the pattern."""
-        key = np.asarray(l) * self.n_nodes + np.asarray(k)
-        idx = np.searchsorted(self._keys, key)
-        found = idx < len(self._keys)
-        if not (found.all() and np.array_equal(self._keys[idx], key)):
-            raise KeyError("a particle pair is not in the pattern")
-        return torch.as_tensor(idx)
+    def structure(self) -> sp.csr_matrix:
+        A = self.operator(np.ones(len(self.order)))
+        return (A.T @ A).tocsr()
 
-    def values(self, blocks: torch.Tensor) -> torch.Tensor:
-        """Per-block values (n_blocks, dim, dim) as the pattern's value vector."""
-        return blocks.reshape(-1)[self._perm]
+    @cached_property
+    def _pairs(self):
+        """All ordered pairs (k1, k2) of entries in the same row of A (sorted entry ids)."""
+        size = np.diff(self.indptr)
+        reps = np.repeat(size, size)
+        k1 = np.repeat(np.arange(len(self.rows)), reps)
+        offset = np.arange(len(k1)) - np.repeat(np.cumsum(reps) - reps, reps)
+        k2 = self.indptr[self.rows[k1]] + offset
+        return k1, k2
+
+    def apply(self, data: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """A x for a flat vector x (differentiable in data and x)."""
+        rows, cols = torch.as_tensor(self.rows), torch.as_tensor(self.cols)
+        contrib = data[torch.as_tensor(self.order)] * x[cols]
+        return torch.zeros(self.shape[0], dtype=contrib.dtype).index_add(0, rows, contrib)
+
+    def values(self, data: torch.Tensor, w: torch.Tensor, pattern: Pattern) -> torch.Tensor:
+        """A^T diag(w) A on ``pattern`` as a differentiable torch expression."""
+        k1, k2 = self._pairs
+        if not hasattr(self, "_targets") or self._targets[0] is not pattern:
+            self._targets = (pattern, torch.as_tensor(pattern.position(self.cols[k1], self.cols[k2])))
+        order = torch.as_tensor(self.order)
+        d = data[order]
+        contrib = w[torch.as_tensor(self.rows[k1])] * d[torch.as_tensor(k1)] * d[torch.as_tensor(k2)]
+        return torch.zeros(pattern.nnz, dtype=contrib.dtype).index_add(0, self._targets[1], contrib)
 
 
-@dataclass(frozen=True)
-class Families:
-    """Each particle's family as a list of *ends*: one per bond touching it, then itself.
+def union_pattern(grams: list[Gram]) -> Pattern:
+    """The symmetric pattern of sum_t A_t^T A_t, plus the diagonal."""
+    n = grams[0].shape[1]
+    S = sum(g.structure() for g in grams) + sp.identity(n, format="csr")
+    S = S.tocsc()
+    S.sort_indices()
+    cols = np.repeat(np.arange(n), np.diff(S.indptr))
+    return Pattern(S.indices.astype(np.int64), cols.astype(np.int64), n)
 
-    ``owner[e]`` is the particle whose family holds end e, ``node[e]`` the particle the end
-    points at, ``bond[e]`` its bond (-1 for the self end) and ``sign[e]`` the orientation of
-    the bond vector seen from the owner.
-    """
 
-    owner: np.ndarray
-    node: np.ndarray
-    bond: np.ndarray
-    sign: np.ndarray
-    n_neighbour_ends: int
-
-    @staticmethod
-    def of(bonds: Bonds, n_nodes: int) -> "Families":
-        b = np.arange(bonds.n)
-        owner = np.concatenate([bonds.i, bonds.j])
-        node = np.concatenate([bonds.j, bonds.i])
-        bond = np.concatenate([b, b])
-        sign = np.concatenate([np.ones(bonds.n), -np.ones(bonds.n)])
-        return Families(owner, node, bond, sign, 2 * bonds.n)
-
-    def with_self(self, n_nodes: int):
-        """(owner, node) of all ends including one self end per particle (appended last)."""
-        diag = np.arange(n_nodes)
-        return np.concatenate([self.owner, diag]), np.concatenate([self.node, diag])
-
-    def end_pairs(self, n_nodes: int):
-        """All ordered pairs (e1, e2) of ends in the same family, self ends included."""
-        owner, _ = self.with_self(n_nodes)
-        order = np.argsort(owner, kind="stable")
-        size = np.bincount(owner, minlength=n_nodes)
-        start = np.concatenate([[0], np.cumsum(size)])[:-1]
-        reps = size[owner[order]]
-        e1 = np.repeat(order, reps)
-        first = np.repeat(np.cumsum(reps) - reps, reps)
-        offset = np.arange(len(e1)) - first
-        e2 = order[start[owner[e1]] + offset]
-        return e1, e2
+def numeric_values(pattern: Pattern, terms) -> torch.Tensor:
+    """sum_t A_t^T diag(w_t) A_t on ``pattern`` from (gram, data, w) triples, via scipy."""
+    K = sum(g.matrix(d.detach().cpu().numpy(), w.detach().cpu().numpy()) for g, d, w in terms)
+    K = K.tocoo()  # no duplicates: scipy sums them in the products
+    values = np.zeros(pattern.nnz)
+    values[pattern.position(K.row, K.col)] = K.data
+    return torch.as_tensor(values)

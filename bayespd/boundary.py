@@ -46,7 +46,7 @@ class Load:
 
 
 class Constraints:
-    """Splits dofs into prescribed and free; reduces K u = f to K_ff u_f = f_f - K_fc u_c."""
+    """Splits dofs into prescribed and free; K u = f becomes K_ff u_f = f_f - K_fc u_c."""
 
     def __init__(self, particles: Particles, pattern: Pattern, dirichlet: list[Dirichlet]):
         n, dim = particles.n, particles.dim
@@ -60,22 +60,26 @@ class Constraints:
                     fixed[bc.mask, c] = True
                     prescribed[bc.mask, c] = v
         self.shape = (n, dim)
-        self.free = ~fixed.reshape(-1)
-        self.prescribed = torch.as_tensor(prescribed.reshape(-1))
-        self._nonzero = bool(np.any(prescribed))
-        self.pattern, entries = pattern.restrict(self.free)
+        self.prescribed = torch.as_tensor(prescribed)
+        self.has_prescribed = bool(np.any(prescribed))
+        free = ~fixed.reshape(-1)
+        self.pattern, entries = pattern.restrict(free)
         self._entries = torch.as_tensor(entries)
-        self._free_idx = torch.as_tensor(np.flatnonzero(self.free))
-        self._full_pattern = pattern
+        self._free_idx = torch.as_tensor(np.flatnonzero(free))
 
-    def reduce(self, values: torch.Tensor, f: torch.Tensor):
-        """(K_ff values, f_f - K_fc u_c) for full-pattern ``values`` and nodal forces f."""
-        rhs = f.reshape(-1)
-        if self._nonzero:
-            rhs = rhs - self._full_pattern.matvec(values, self.prescribed.to(values.dtype))
-        return values[self._entries], rhs[self._free_idx]
+    def free_values(self, values: torch.Tensor) -> torch.Tensor:
+        """Values of K_ff from values of K on the full pattern."""
+        return values[self._entries]
+
+    def free(self, x: torch.Tensor) -> torch.Tensor:
+        """The free dofs of a nodal field (N, dim)."""
+        return x.reshape(-1)[self._free_idx]
+
+    def embed(self, x_free: torch.Tensor) -> torch.Tensor:
+        """A nodal field (N, dim) equal to x_free on the free dofs and zero elsewhere."""
+        x = torch.zeros(self.shape[0] * self.shape[1], dtype=x_free.dtype)
+        return x.index_put((self._free_idx,), x_free).reshape(self.shape)
 
     def expand(self, u_free: torch.Tensor) -> torch.Tensor:
-        """Full displacement (N, dim) from the free dofs."""
-        u = self.prescribed.to(u_free.dtype).index_put((self._free_idx,), u_free)
-        return u.reshape(self.shape)
+        """Full displacement (N, dim): the free dofs plus the prescribed values."""
+        return self.embed(u_free) + self.prescribed.to(u_free.dtype)

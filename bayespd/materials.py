@@ -8,7 +8,8 @@ W_i = kappa/2 theta^2 + alpha/2 sum_j w (e^d)^2 V_j rewrites, using sum_j w x e^
 
     W_i = (kappa_i / 2 - c_d G_i / (2 d^2)) theta_i^2 + (c_d G_i / (2 m_i)) sum_j w e_ij^2 V_j,
 
-so K = sum_i s_i g_i g_i^T + sum_bonds k_b n n^T is the Hessian of sum_i V_i W_i: symmetric
+so K = D^T diag(s) D + B^T diag(k_b) B (D maps u to dilatations, B to bond extensions;
+see assembly.py) is the Hessian of sum_i V_i W_i: symmetric
 even when the moduli vary from particle to particle (seed 000 eq 8). kappa is the in-plane
 bulk modulus: 9KG/(3K+4G) in plane stress, K + G/3 in plane strain, K in 3D. This is the
 2D split of Le et al. (2014) and equals seed 001's eqs 18-19 (which use the 3D split x theta/3
@@ -22,11 +23,12 @@ plane strain (nu = 1/4, E = 3K/2), calibrated on the continuum family.
 from __future__ import annotations
 
 import math
+from functools import cached_property
 
 import numpy as np
 import torch
 
-from bayespd.assembly import BlockPattern, Families
+from bayespd.assembly import Gram, numeric_values, union_pattern
 from bayespd.bonds import Bonds
 from bayespd.discretize import Particles
 
@@ -58,36 +60,52 @@ def check_modulus(name: str, value, n: int) -> torch.Tensor:
 
 
 class _Material:
-    """Shared set-up: particles, bonds, fixed geometry as tensors."""
+    """Shared machinery: a material is a list of Gram terms (operator, data, weights)."""
 
     def __init__(self, particles: Particles, bonds: Bonds, plane: str = "stress"):
         if plane not in ("stress", "strain"):
             raise ValueError("plane must be 'stress' or 'strain'")
         self.particles, self.bonds, self.plane = particles, bonds, plane
-        self.dim = particles.dim
+        self.dim = d = particles.dim
         self.volume = torch.as_tensor(particles.volume)
         self.length = torch.as_tensor(bonds.length)
         self.unit = torch.as_tensor(bonds.xi / bonds.length[:, None])
         self._i, self._j = torch.as_tensor(bonds.i), torch.as_tensor(bonds.j)
+        # B: bond extensions e_b = n . (u_j - u_i); entries (b, d*i+a) = -n_a, (b, d*j+a) = n_a
+        a = np.arange(d)
+        rows = np.repeat(np.arange(bonds.n), 2 * d)
+        cols = np.concatenate([d * bonds.i[:, None] + a, d * bonds.j[:, None] + a], axis=1).reshape(-1)
+        self._extension = Gram(rows, cols, bonds.n, d * particles.n)
+        self._extension_data = torch.cat([-self.unit, self.unit], dim=1).reshape(-1)
 
-    @property
+    def _grams(self) -> list[Gram]:
+        return [self._extension]
+
+    @cached_property
     def pattern(self):
-        return self.blocks.pattern
+        return union_pattern(self._grams())
 
-    def _bond_blocks(self, blocks: torch.Tensor, k_b: torch.Tensor) -> torch.Tensor:
-        """Add k_b n n^T to the (i,i), (j,j) blocks and subtract it from (i,j), (j,i)."""
-        kb = k_b[:, None, None] * self.unit[:, :, None] * self.unit[:, None, :]
-        ii, jj, ij, ji = self._bond_block_ids
-        return blocks.index_add(0, ii, kb).index_add(0, jj, kb).index_add(0, ij, -kb).index_add(0, ji, -kb)
+    def stiffness(self, params: dict, delta) -> torch.Tensor:
+        """Values of K(params, delta) on ``self.pattern``, differentiable (twice)."""
+        return sum(g.values(d, w, self.pattern) for g, d, w in self._terms(params, delta))
 
-    def _setup_bond_blocks(self):
-        b, bl = self.bonds, self.blocks
-        self._bond_block_ids = (bl.block(b.i, b.i), bl.block(b.j, b.j),
-                                bl.block(b.i, b.j), bl.block(b.j, b.i))
+    def numeric_stiffness(self, params: dict, delta) -> torch.Tensor:
+        """The same values assembled by scipy (no autograd graph; for factorisation)."""
+        with torch.no_grad():
+            return numeric_values(self.pattern, self._terms(params, delta))
+
+    def form(self, params: dict, delta, v: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """v^T K(params, delta) u matrix-free: sum_t sum_r w_r (A_t v)_r (A_t u)_r."""
+        v, u = v.reshape(-1), u.reshape(-1)
+        return sum((w * g.apply(d, v) * g.apply(d, u)).sum() for g, d, w in self._terms(params, delta))
+
+    def energy(self, params: dict, delta, u: torch.Tensor) -> torch.Tensor:
+        """Total strain energy sum_i V_i W_i = u^T K u / 2 of the linearised model."""
+        return 0.5 * self.form(params, delta, u, u)
 
     def extension(self, u: torch.Tensor) -> torch.Tensor:
         """Linearised bond extension e = n . (u_j - u_i) for u of shape (N, dim)."""
-        return ((u[self._j] - u[self._i]) * self.unit).sum(-1)
+        return self._extension.apply(self._extension_data, u.reshape(-1))
 
 
 class LPS(_Material):
@@ -96,22 +114,25 @@ class LPS(_Material):
     Params: ``{"K": bulk, "G": shear}`` (3D moduli; scalars or per-particle tensors).
     """
 
+    param_names = ("K", "G")
+
     def __init__(self, particles: Particles, bonds: Bonds, plane: str = "stress"):
         super().__init__(particles, bonds, plane)
-        n = particles.n
-        self.families = Families.of(bonds, n)
-        owner, node = self.families.with_self(n)
-        e1, e2 = self.families.end_pairs(n)
-        self.blocks = BlockPattern(n, self.dim, node[e1], node[e2])
-        self._triple_block = self.blocks.block(node[e1], node[e2])
-        self._e1, self._e2 = torch.as_tensor(e1), torch.as_tensor(e2)
-        self._triple_owner = torch.as_tensor(owner[e1])
-        f = self.families
-        self._owner = torch.as_tensor(f.owner)
-        self._end_bond = torch.as_tensor(f.bond)
-        self._end_sign = torch.as_tensor(f.sign)
-        self._end_volume = self.volume[torch.as_tensor(f.node)]
-        self._setup_bond_blocks()
+        n, d, nb = particles.n, self.dim, bonds.n
+        # family ends: one per bond touching a particle, then one self end per particle
+        self._owner = torch.as_tensor(np.concatenate([bonds.i, bonds.j]))
+        self._end_node = torch.as_tensor(np.concatenate([bonds.j, bonds.i]))
+        self._end_bond = torch.as_tensor(np.concatenate([np.arange(nb), np.arange(nb)]))
+        self._end_sign = torch.cat([torch.ones(nb), -torch.ones(nb)])
+        self._end_volume = self.volume[self._end_node]
+        owner = np.concatenate([bonds.i, bonds.j, np.arange(n)])
+        node = np.concatenate([bonds.j, bonds.i, np.arange(n)])
+        # D: dilatations theta_i = sum_e g_e . u_node(e)
+        a = np.arange(d)
+        self._dilatation = Gram(np.repeat(owner, d), (d * node[:, None] + a).reshape(-1), n, d * n)
+
+    def _grams(self) -> list[Gram]:
+        return [self._extension, self._dilatation]
 
     def kappa(self, K: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
         """In-plane bulk modulus of the dimension-reduced continuum."""
@@ -143,7 +164,7 @@ class LPS(_Material):
         g_self = -torch.zeros(self.particles.n, d, dtype=g.dtype).index_add(0, self._owner, g)
         return torch.cat([g, g_self])
 
-    def _coefficients(self, params, delta):
+    def _terms(self, params, delta):
         K, G = self._moduli(params)
         d, c = self.dim, _C_DEV[self.dim]
         beta = self.bonds.weight(delta)
@@ -152,25 +173,8 @@ class LPS(_Material):
         s = self.volume * (self.kappa(K, G) - c * G / d**2)
         V = self.volume
         k_b = c * beta * V[self._i] * V[self._j] * (G[self._i] / m[self._i] + G[self._j] / m[self._j])
-        return s, k_b, self._dilatation_vectors(beta, m)
-
-    def stiffness(self, params: dict, delta) -> torch.Tensor:
-        """Values of K(params, delta) on ``self.pattern``."""
-        s, k_b, g = self._coefficients(params, delta)
-        g1, g2 = g[self._e1], g[self._e2]
-        tri = s[self._triple_owner][:, None, None] * g1[:, :, None] * g2[:, None, :]
-        blocks = torch.zeros(self.blocks.n_blocks, self.dim, self.dim, dtype=tri.dtype)
-        blocks = blocks.index_add(0, self._triple_block, tri)
-        return self.blocks.values(self._bond_blocks(blocks, k_b))
-
-    def energy(self, params: dict, delta, u: torch.Tensor) -> torch.Tensor:
-        """Total strain energy sum_i V_i W_i of the linearised model for u of shape (N, dim)."""
-        s, k_b, g = self._coefficients(params, delta)
-        n = self.particles.n
-        node = torch.cat([torch.as_tensor(self.families.node), torch.arange(n)])
-        owner = torch.cat([self._owner, torch.arange(n)])
-        theta = torch.zeros(n, dtype=u.dtype).index_add(0, owner, (g * u[node]).sum(-1))
-        return 0.5 * (s * theta**2).sum() + 0.5 * (k_b * self.extension(u) ** 2).sum()
+        g = self._dilatation_vectors(beta, m)
+        return [(self._extension, self._extension_data, k_b), (self._dilatation, g.reshape(-1), s)]
 
 
 class BondBased(_Material):
@@ -180,10 +184,7 @@ class BondBased(_Material):
     (1/4 in 3D and plane strain, 1/3 in plane stress).
     """
 
-    def __init__(self, particles: Particles, bonds: Bonds, plane: str = "stress"):
-        super().__init__(particles, bonds, plane)
-        self.blocks = BlockPattern(particles.n, self.dim, bonds.i, bonds.j)
-        self._setup_bond_blocks()
+    param_names = ("K",)
 
     def micromodulus(self, K: torch.Tensor, delta) -> torch.Tensor:
         delta = torch.as_tensor(delta)
@@ -192,21 +193,12 @@ class BondBased(_Material):
         coef = 9.0 if self.plane == "stress" else 72.0 / 5.0
         return coef * K / (math.pi * self.particles.thickness * delta**3)
 
-    def _bond_stiffness(self, params, delta):
+    def _terms(self, params, delta):
         if "K" not in params:
             raise ValueError("BondBased needs params['K'] (bulk modulus)")
         K = check_modulus("K", params["K"], self.particles.n).expand(self.particles.n)
         beta = self.bonds.weight(delta)
         c = self.micromodulus(K, delta)
         c_b = 0.5 * (c[self._i] + c[self._j])
-        return c_b * beta * self.volume[self._i] * self.volume[self._j] / self.length
-
-    def stiffness(self, params: dict, delta) -> torch.Tensor:
-        """Values of K(params, delta) on ``self.pattern``."""
-        k_b = self._bond_stiffness(params, delta)
-        blocks = torch.zeros(self.blocks.n_blocks, self.dim, self.dim, dtype=k_b.dtype)
-        return self.blocks.values(self._bond_blocks(blocks, k_b))
-
-    def energy(self, params: dict, delta, u: torch.Tensor) -> torch.Tensor:
-        """Total strain energy 1/2 sum_b c V_i V_j e^2 / |xi| of the linearised model."""
-        return 0.5 * (self._bond_stiffness(params, delta) * self.extension(u) ** 2).sum()
+        k_b = c_b * beta * self.volume[self._i] * self.volume[self._j] / self.length
+        return [(self._extension, self._extension_data, k_b)]

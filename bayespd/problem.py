@@ -5,14 +5,15 @@ import torch
 
 from bayespd.boundary import Constraints, Dirichlet, Load
 from bayespd.observe import Observation
-from bayespd.sparse import solve
+from bayespd.sparse import solve_form
 
 
 class Scene:
     """A static linear-elastic peridynamic problem built only from the parts it declares.
 
-    ``params`` holds the material moduli (e.g. ``K``, ``G``), the horizon ``delta`` and an
-    optional ``load`` factor scaling every load; each may require grad.
+    ``params`` holds the material moduli (``material.param_names``, e.g. K and G), the
+    horizon ``delta`` and an optional ``load`` factor scaling every load. Each may be a
+    tensor that requires grad: the gradient costs one extra solve with the same factor.
     """
 
     def __init__(self, material, dirichlet: list[Dirichlet], loads: list[Load],
@@ -30,15 +31,36 @@ class Scene:
         self.material, self.particles, self.observation = material, p, observation
         self.constraints = Constraints(p, material.pattern, dirichlet)
         self.force = sum(load.nodal(p) for load in loads)
+        self.param_names = (*material.param_names, "delta")
+
+    def _params(self, params: dict) -> dict:
+        missing = set(self.param_names) - set(params)
+        unknown = set(params) - set(self.param_names) - {"load"}
+        if missing or unknown:
+            raise ValueError(f"params need {list(self.param_names)} (+ optional 'load'); "
+                             f"missing {sorted(missing)}, unknown {sorted(unknown)}")
+        return {k: torch.as_tensor(v) for k, v in params.items()}
+
+    def _form(self, v_free, u_free, *theta):
+        """v^T K_ff u on the free dofs, as a function of the parameters in param_names."""
+        q = dict(zip(self.param_names, theta))
+        c = self.constraints
+        return self.material.form(q, q["delta"], c.embed(v_free), c.embed(u_free))
 
     def solve(self, params: dict) -> torch.Tensor:
-        """Displacement (N, dim) at equilibrium; differentiable in every entry of params."""
-        if "delta" not in params:
-            raise ValueError("params must include the horizon 'delta'")
-        values = self.material.stiffness(params, params["delta"])
-        f = self.force * params.get("load", 1.0)
-        values_f, rhs = self.constraints.reduce(values, f)
-        return self.constraints.expand(solve(self.constraints.pattern, values_f, rhs))
+        """Displacement (N, dim) at equilibrium; differentiable (twice) in every param."""
+        p = self._params(params)
+        c, m = self.constraints, self.material
+        with torch.no_grad():
+            factor = c.pattern.factorize(c.free_values(m.numeric_stiffness(p, p["delta"])))
+        f = self.force * p["load"] if "load" in p else self.force
+        rhs = c.free(f)
+        if c.has_prescribed:  # f_f - K_fc u_c, K u_c as the gradient of the form
+            v = torch.zeros_like(c.prescribed, requires_grad=True)
+            Ku = torch.autograd.grad(m.form(p, p["delta"], v, c.prescribed), v, create_graph=True)[0]
+            rhs = rhs - c.free(Ku)
+        u_free = solve_form(self._form, factor, rhs, [p[k] for k in self.param_names])
+        return c.expand(u_free)
 
     def observe(self, u: torch.Tensor) -> torch.Tensor:
         if self.observation is None:

@@ -5,8 +5,11 @@ the same factorisation (K is symmetric: seed 000 §3.3) and returns
 
     grad_values[k] = -lambda[rows[k]] * u[cols[k]],   grad_rhs = lambda,
 
-computed from the index lists (never a dense n x n matrix). The backward calls the same
-Function, so second derivatives and Hessian-vector products exist.
+computed from the index lists (never a dense n x n matrix). The general form, ``solve_form``,
+takes K(params) through its bilinear form v^T K(params) u, so a material can return
+grad_params = -d/dparams (lambda^T K u) matrix-free, at O(bonds) cost, without building the
+stiffness values' autograd graph (seed 000 eqs 14-19). The backward calls the same Function,
+so second derivatives and Hessian-vector products exist.
 
 Backends: CHOLMOD (scikit-sparse) when importable, analysing the pattern once and
 refactorising per value; else scipy's SuperLU in symmetric mode with an AMD ordering.
@@ -54,6 +57,15 @@ class Pattern:
     @property
     def nnz(self) -> int:
         return len(self.rows)
+
+    def position(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Entry index of each (row, col); every pair must be in the pattern."""
+        keys = self.cols * self.n + self.rows
+        query = np.asarray(cols) * self.n + np.asarray(rows)
+        idx = np.searchsorted(keys, query)
+        if not (np.all(idx < len(keys)) and np.array_equal(keys[idx], query)):
+            raise KeyError("an entry is not in the pattern")
+        return idx
 
     def matrix(self, values: torch.Tensor) -> sp.csc_matrix:
         v = values.detach().cpu().numpy()
@@ -122,34 +134,88 @@ def _splu_factor(A) -> Factor:
     return Factor(lu.solve)
 
 
-class _Solve(torch.autograd.Function):
+class ValuesForm:
+    """The bilinear form v^T K u of a matrix given by its values on a pattern."""
+
+    def __init__(self, pattern: Pattern):
+        self.pattern = pattern
+
+    def __call__(self, v, u, values):
+        p = self.pattern
+        return (values.reshape(-1, *([1] * (u.dim() - 1))) * v[p.rows_t] * u[p.cols_t]).sum()
+
+
+def _grad(out, inputs, **kw):
+    grads = torch.autograd.grad(out, inputs, allow_unused=True, **kw)
+    return [torch.zeros_like(x) if g is None else g for g, x in zip(grads, inputs)]
+
+
+def _leaves(*tensors):
+    return [t.detach().requires_grad_() for t in tensors]
+
+
+class _FormGradient(torch.autograd.Function):
+    """d/dparams of the bilinear form a(v, u; params) = v^T K(params) u at fixed v, u.
+
+    Its backward differentiates once more (a Hessian-vector product of the form), which is
+    what second derivatives of a solve need.
+    """
+
     @staticmethod
-    def forward(ctx, values, rhs, pattern, factor):
-        if factor is None:
-            factor = pattern.factorize(values)
+    def forward(ctx, form, v, u, *params):
+        ctx.form = form
+        ctx.save_for_backward(v, u, *params)
+        with torch.enable_grad():
+            leaves = _leaves(*params)
+            return tuple(_grad(form(v.detach(), u.detach(), *leaves), leaves))
+
+    @staticmethod
+    def backward(ctx, *w):
+        v, u, *params = ctx.saved_tensors
+        with torch.enable_grad():
+            v_, u_, *leaves = _leaves(v, u, *params)
+            grads = _grad(ctx.form(v_, u_, *leaves), leaves, create_graph=True)
+            directional = sum((g * wi).sum() for g, wi in zip(grads, w))
+            if not directional.requires_grad:  # no parameter enters the form
+                return (None, None, None, *[None] * len(params))
+            dv, du, *dp = _grad(directional, [v_, u_, *leaves])
+        return (None, dv, du, *dp)
+
+
+class _Solve(torch.autograd.Function):
+    """u = K(params)^-1 rhs with a given factor; backward: one more solve with that factor."""
+
+    @staticmethod
+    def forward(ctx, form, factor, rhs, *params):
         u = torch.as_tensor(factor.solve(rhs.detach().cpu().numpy()), dtype=rhs.dtype,
                             device=rhs.device)
-        ctx.pattern, ctx.factor = pattern, factor
-        ctx.save_for_backward(values, u)
+        ctx.form, ctx.factor = form, factor
+        ctx.save_for_backward(u, *params)
         return u
 
     @staticmethod
     def backward(ctx, grad_u):
-        values, u = ctx.saved_tensors
-        p = ctx.pattern
-        lam = _Solve.apply(values, grad_u, p, ctx.factor)
-        grad_values = None
-        if ctx.needs_input_grad[0]:
-            prod = -lam[p.rows_t] * u[p.cols_t]
-            grad_values = prod if prod.dim() == 1 else prod.sum(dim=-1)
-        return grad_values, lam, None, None
+        u, *params = ctx.saved_tensors
+        lam = _Solve.apply(ctx.form, ctx.factor, grad_u, *params)
+        grads = [None] * len(params)
+        if any(ctx.needs_input_grad[3:]):
+            grads = [-g for g in _FormGradient.apply(ctx.form, lam, u, *params)]
+        return (None, None, lam, *grads)
+
+
+def solve_form(form, factor: Factor, rhs: torch.Tensor, params) -> torch.Tensor:
+    """u = K^-1 rhs where ``factor`` factorises K(params) and ``form(v, u, *params)`` is
+    v^T K(params) u (differentiable). The gradient with respect to params is
+    -d/dparams form(lambda, u) with K lambda = grad_u: one extra solve, twice differentiable."""
+    return _Solve.apply(form, factor, rhs, *params)
 
 
 def solve(pattern: Pattern, values: torch.Tensor, rhs: torch.Tensor) -> torch.Tensor:
     """u = K(values)^-1 rhs for symmetric positive-definite K on ``pattern``; differentiable
-    (twice) in ``values`` and ``rhs``. ``rhs`` is (n,) or (n, k)."""
+    (twice) in ``values`` and ``rhs``, with grad_values[k] = -lambda[rows[k]] u[cols[k]].
+    ``rhs`` is (n,) or (n, k)."""
     if values.shape != (pattern.nnz,):
         raise ValueError(f"values must have shape ({pattern.nnz},), got {tuple(values.shape)}")
     if rhs.shape[0] != pattern.n:
         raise ValueError(f"rhs must have {pattern.n} rows, got {rhs.shape[0]}")
-    return _Solve.apply(values, rhs, pattern, None)
+    return solve_form(ValuesForm(pattern), pattern.factorize(values.detach()), rhs, (values,))
