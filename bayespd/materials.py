@@ -164,6 +164,17 @@ class LPS(_Material):
         g_self = -torch.zeros(self.particles.n, d, dtype=g.dtype).index_add(0, self._owner, g)
         return torch.cat([g, g_self])
 
+    def energy_density(self, params: dict, delta, u: torch.Tensor) -> torch.Tensor:
+        """W_i per particle (seed 001 eq 40) for u of shape (N, dim)."""
+        K, G = self._moduli(params)
+        d, c = self.dim, _C_DEV[self.dim]
+        beta = self.bonds.weight(delta)
+        m = self.weighted_volume(beta)
+        theta = self._dilatation.apply(self._dilatation_vectors(beta, m).reshape(-1), u.reshape(-1))
+        e2 = (beta * self.extension(u) ** 2)[self._end_bond] * self._end_volume
+        sum_e2 = torch.zeros(self.particles.n, dtype=e2.dtype).index_add(0, self._owner, e2)
+        return (0.5 * (self.kappa(K, G) - c * G / d**2) * theta**2 + 0.5 * c * G / m * sum_e2)
+
     def _terms(self, params, delta):
         K, G = self._moduli(params)
         d, c = self.dim, _C_DEV[self.dim]

@@ -1,0 +1,113 @@
+"""The differentiable solve: gradcheck, Taylor remainders, second derivatives, backends."""
+import numpy as np
+import pytest
+import torch
+
+import bayespd as bp
+from bayespd import sparse
+from conftest import plate_scene
+
+# delta = 2.2 h keeps every bond away from a kink of the partial-volume weights (|xi| = delta +- h/2)
+BASE = {"K": 3000.0, "G": 1500.0, "delta": 2.2, "load": 1.0}
+NAMES = list(BASE)
+
+
+def observed(scene, *theta):
+    return scene.observe(scene.solve(dict(zip(NAMES, theta)))).reshape(-1)
+
+
+def leaves(values=BASE):
+    return [torch.tensor(values[k], requires_grad=True) for k in NAMES]
+
+
+def test_scene_gradcheck_and_gradgradcheck(small_scene):
+    fn = lambda *t: observed(small_scene, *t)  # noqa: E731
+    assert torch.autograd.gradcheck(fn, leaves(), eps=1e-6, atol=1e-9, rtol=1e-6)
+    assert torch.autograd.gradgradcheck(fn, leaves(), eps=1e-6, atol=1e-8, rtol=1e-5)
+
+
+def test_values_solve_gradcheck_through_stiffness(small_scene):
+    """The spec'd primitive: solve(pattern, values, rhs) with values from the material."""
+    sc = small_scene
+    c = sc.constraints
+
+    def fn(K, G, delta, load):
+        values = c.free_values(sc.material.stiffness({"K": K, "G": G}, delta))
+        return sparse.solve(c.pattern, values, c.free(sc.force) * load)
+
+    assert torch.autograd.gradcheck(fn, leaves(), eps=1e-6, atol=1e-9, rtol=1e-6)
+    assert torch.autograd.gradgradcheck(fn, leaves(), eps=1e-6, atol=1e-8, rtol=1e-5)
+
+
+def taylor_slopes(J, x0, direction, grad):
+    ts = 1e-2 * 0.5 ** np.arange(5)
+    J0 = J(x0)
+    r0 = [abs(J(x0 + t * direction) - J0) for t in ts]
+    r1 = [abs(J(x0 + t * direction) - J0 - t * float(grad * direction)) for t in ts]
+    return np.diff(np.log(r0)) / np.diff(np.log(ts)), np.diff(np.log(r1)) / np.diff(np.log(ts))
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_taylor_remainder_slope_two(small_scene, name):
+    """|J(p + t dp) - J(p) - t dJ.dp| = O(t^2) per parameter, with a random data misfit J."""
+    gen = torch.Generator().manual_seed(7)
+    y = observed(small_scene, *leaves()).detach() * (1 + 0.05 * torch.randn(1, generator=gen))
+    y = y + 1e-3 * torch.randn(y.shape, generator=gen)
+    scale = {"K": 300.0, "G": 150.0, "delta": 0.05, "load": 0.1}[name]
+
+    def J(x):
+        theta = dict(BASE, **{name: x})
+        return float(0.5 * ((observed(small_scene, *theta.values()) - y) ** 2).sum())
+
+    x0 = torch.tensor(BASE[name], requires_grad=True)
+    theta = [x0 if k == name else torch.tensor(BASE[k]) for k in NAMES]
+    obj = 0.5 * ((observed(small_scene, *theta) - y) ** 2).sum()
+    (grad,) = torch.autograd.grad(obj, x0)
+    direction = torch.tensor(scale * float(torch.randn(1, generator=gen).sign()))
+    s0, s1 = taylor_slopes(lambda v: J(float(v)), x0.detach(), direction, grad)
+    assert np.all(np.abs(s0 - 1.0) < 0.1)
+    assert np.all(np.abs(s1 - 2.0) < 0.1), s1
+
+
+def test_hessian_vector_product_matches_finite_difference(small_scene):
+    theta = leaves()
+    y = observed(small_scene, *theta).detach() * 1.1
+
+    def grad_at(values):
+        t = leaves(values)
+        obj = 0.5 * ((observed(small_scene, *t) - y) ** 2).sum()
+        return torch.stack(torch.autograd.grad(obj, t))
+
+    obj = 0.5 * ((observed(small_scene, *theta) - y) ** 2).sum()
+    g = torch.stack(torch.autograd.grad(obj, theta, create_graph=True))
+    v = torch.tensor([100.0, -50.0, 0.02, 0.05])
+    hv = torch.stack(torch.autograd.grad(g @ v, theta))
+    h = 1e-4
+    plus = {k: BASE[k] + h * float(v[i]) for i, k in enumerate(NAMES)}
+    minus = {k: BASE[k] - h * float(v[i]) for i, k in enumerate(NAMES)}
+    fd = (grad_at(plus) - grad_at(minus)) / (2 * h)
+    np.testing.assert_allclose(hv, fd, rtol=1e-5, atol=1e-9 * float(fd.abs().max()))
+
+
+@pytest.mark.skipif(sparse.cholmod is None, reason="CHOLMOD (scikit-sparse) not installed")
+def test_backends_agree():
+    sc = plate_scene(nx=16, ny=8)
+    c = sc.constraints
+    values = c.free_values(sc.material.numeric_stiffness(BASE, BASE["delta"]))
+    rhs = c.free(sc.force).numpy()
+    u_chol = c.pattern.factorize(values, "cholmod").solve(rhs)
+    u_lu = c.pattern.factorize(values, "splu").solve(rhs)
+    np.testing.assert_allclose(u_chol, u_lu, rtol=1e-10, atol=1e-14)
+
+
+@pytest.mark.parametrize("backend", ["splu", "cholmod"])
+def test_not_positive_definite_is_reported(backend):
+    if backend == "cholmod" and sparse.cholmod is None:
+        pytest.skip("CHOLMOD not installed")
+    p = bp.grid_2d(6.0, 4.0, 1.0)
+    mat = bp.LPS(p, bp.find_bonds(p, 2.0))
+    values = mat.numeric_stiffness({"K": 1.0, "G": 1.0}, 2.0)
+    with pytest.raises(bp.NotPositiveDefiniteError):  # no constraints: rigid-body modes
+        mat.pattern.factorize(values, backend).solve(np.ones(mat.pattern.n))
+    with pytest.raises(bp.NotPositiveDefiniteError):
+        mat.pattern.factorize(-values - 1e-3 * torch.eye(1)[0, 0], backend)

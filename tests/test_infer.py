@@ -1,0 +1,251 @@
+"""bayespd.infer on a conjugate model with a known posterior: mu ~ N(0, 10^2), y_i ~ N(mu, 1)."""
+
+import json
+import math
+import warnings
+
+import arviz as az
+import numpy as np
+import pyro
+import pyro.distributions as dist
+import pytest
+import torch
+import xarray as xr
+from scipy import stats
+from torch.distributions import biject_to, constraints
+
+from bayespd.infer import ScaledBeta, fit, load, save, summary, to_inference_data
+
+N, PRIOR_SD, LOW, HIGH = 50, 10.0, 0.5, 2.0
+DRAWS = 300  # per chain, after as many warmup steps
+
+
+@pytest.fixture(scope="module", autouse=True)
+def float64():
+    old = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    yield
+    torch.set_default_dtype(old)
+
+
+@pytest.fixture(scope="module")
+def y():
+    return 1.5 + torch.randn(N, generator=torch.Generator().manual_seed(0))
+
+
+@pytest.fixture(scope="module")
+def exact(y):
+    """Exact posterior mean and sd of mu."""
+    precision = N + PRIOR_SD**-2
+    return float(y.sum()) / precision, precision**-0.5
+
+
+def model(y=None):
+    mu = pyro.sample("mu", dist.Normal(0.0, PRIOR_SD))
+    pyro.sample("h", ScaledBeta(LOW, HIGH))  # not in the likelihood: posterior = prior
+    pyro.deterministic("two_mu", 2 * mu)
+    with pyro.plate("obs", N):
+        pyro.sample("y", dist.Normal(mu, 1.0), obs=y)
+
+
+@pytest.fixture(scope="module")
+def nuts(y):
+    return fit(model, {"y": y}, num_samples=DRAWS, num_warmup=DRAWS, progress=False)
+
+
+def check_moments(draws, mean, sd, mean_tol):
+    """Draws' mean within mean_tol of mean, sd within 15 %."""
+    assert abs(float(draws.mean()) - mean) < mean_tol
+    assert float(draws.std()) == pytest.approx(sd, rel=0.15)
+
+
+def mcse(draws):
+    return float(draws.std()) / math.sqrt(float(az.ess(draws.values)))
+
+
+def test_nuts_recovers_conjugate_posterior(nuts, exact):
+    mu, h = nuts["posterior"]["mu"], nuts["posterior"]["h"]
+    check_moments(mu, *exact, mean_tol=4 * mcse(mu))
+    # ScaledBeta(2, 2) on [LOW, HIGH]: mean at the centre, sd = width * sqrt(1 / 20)
+    check_moments(h, (LOW + HIGH) / 2, (HIGH - LOW) / math.sqrt(20), mean_tol=4 * mcse(h))
+    assert float(h.min()) > LOW and float(h.max()) < HIGH
+    np.testing.assert_allclose(nuts["posterior"]["two_mu"], 2 * mu)
+    assert az.rhat(to_inference_data(nuts), var_names=["mu", "h"]).to_array().max() < 1.05
+
+
+def test_tree_layout_and_sample_stats(nuts):
+    assert set(nuts.children) == {
+        "posterior", "sample_stats", "log_likelihood", "posterior_predictive", "observed_data"
+    }
+    assert nuts["posterior"]["mu"].dims == ("chain", "draw")
+    assert dict(nuts["posterior"].sizes) == {"chain": 2, "draw": DRAWS}
+    st = nuts["sample_stats"]
+    assert {v: st[v].dtype.kind for v in st.data_vars} == {
+        "lp": "f", "energy": "f", "step_size": "f", "tree_depth": "i", "n_steps": "i",
+        "diverging": "b", "acceptance_rate": "f",
+    }
+    assert all(st[v].dims == ("chain", "draw") for v in st.data_vars)
+    assert (st["n_steps"] <= 2 ** st["tree_depth"] - 1).all() and (st["n_steps"] >= 1).all()
+    assert ((st["acceptance_rate"] >= 0) & (st["acceptance_rate"] <= 1)).all()
+    assert (st["step_size"] == st["step_size"][:, 0]).all()  # adapted during warmup only
+    assert int(st["diverging"].sum()) == 0
+    assert nuts.attrs["method"] == "nuts" and nuts.attrs["wall_time_s"] > 0
+    assert nuts.attrs["num_grad_evals"] >= int(st["n_steps"].sum())
+    assert json.loads(nuts.attrs["settings"])["num_chains"] == 2
+
+
+def test_lp_is_log_joint_on_unconstrained_space(nuts, y):
+    c, d = 1, 17
+    mu, h = (torch.tensor(float(nuts["posterior"][v][c, d])) for v in ("mu", "h"))
+    prior = ScaledBeta(LOW, HIGH)
+    to_h = biject_to(prior.support)
+    expected = (
+        dist.Normal(0.0, PRIOR_SD).log_prob(mu)
+        + prior.log_prob(h)
+        + to_h.log_abs_det_jacobian(to_h.inv(h), h)
+        + dist.Normal(mu, 1.0).log_prob(y).sum()
+    )
+    assert float(nuts["sample_stats"]["lp"][c, d]) == pytest.approx(float(expected), rel=1e-10)
+
+
+def test_log_likelihood_and_predictive(nuts, y, exact):
+    ll = nuts["log_likelihood"]["y"]
+    assert ll.dims == ("chain", "draw", "y_dim_0") and ll.shape == (2, DRAWS, N)
+    mu = float(nuts["posterior"]["mu"][0, 5])
+    expected = dist.Normal(mu, 1.0).log_prob(y)
+    np.testing.assert_allclose(ll[0, 5], expected, rtol=1e-12)
+    assert float(ll[0, 5].sum()) == pytest.approx(float(expected.sum()), rel=1e-12)
+    np.testing.assert_array_equal(nuts["observed_data"]["y"], y.numpy())
+    pp = nuts["posterior_predictive"]["y"]
+    assert pp.shape == (2, DRAWS, N)
+    # replicated data: N(mu, 1) given mu, so its mean over everything is near the posterior mean
+    assert float(pp.mean()) == pytest.approx(exact[0], abs=0.05)
+
+
+def test_summary_and_inference_data(nuts):
+    idata = to_inference_data(nuts)
+    assert set(idata.groups()) == set(nuts.children)
+    assert idata.attrs["method"] == "nuts"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        df = summary(nuts, var_names=["mu", "h"])
+    assert list(df.index) == ["mu", "h"]
+    for col in ["mean", "sd", "hdi_5%", "hdi_95%", "mcse_mean", "ess_bulk", "ess_tail", "r_hat"]:
+        assert col in df.columns
+    assert az.loo(idata).elpd_loo < 0
+
+
+def test_summary_warns_on_divergences_and_bad_rhat(nuts):
+    bad = nuts.copy(deep=True)
+    st = bad["sample_stats"].to_dataset()
+    st["diverging"][0, 0] = True
+    post = bad["posterior"].to_dataset()
+    post["mu"][1] += 1.0  # chains disagree
+    bad["sample_stats"], bad["posterior"] = st, post
+    with pytest.warns(UserWarning) as record:
+        summary(bad, var_names=["mu"])
+    messages = " ".join(str(w.message) for w in record)
+    assert "divergent" in messages and "r_hat" in messages
+    assert not nuts["sample_stats"]["diverging"].any()  # the copy was deep
+
+
+def test_save_load_round_trip(nuts, tmp_path):
+    path = tmp_path / "fit.nc"
+    save(nuts, path)
+    save(nuts, path)  # overwrites in place
+    assert [p.name for p in tmp_path.iterdir()] == ["fit.nc"]  # no temp file left behind
+    loaded = load(path)
+    xr.testing.assert_identical(loaded, nuts)
+    assert loaded.attrs == nuts.attrs
+    assert loaded["sample_stats"]["diverging"].dtype == bool
+
+
+def test_svi_recovers_conjugate_posterior(y, exact):
+    steps = 1000
+    tree = fit(model, {"y": y}, method="svi", num_samples=1000, svi_steps=steps, progress=False)
+    mu = tree["posterior"]["mu"]
+    assert dict(tree["posterior"].sizes) == {"chain": 1, "draw": 1000}
+    # The Gaussian posterior is in the variational family, so the optimum is exact; the
+    # residual error is the Monte-Carlo error of the draws (sd / sqrt(1000) ~ 0.03 sd) plus
+    # optimiser noise from single-sample ELBO gradients, hence 0.15 sd rather than 4 MCSE.
+    check_moments(mu, *exact, mean_tol=0.15 * exact[1])
+    loss = tree["sample_stats"]["svi_loss"]
+    assert loss.dims == ("svi_step",) and loss.size == steps
+    assert float(loss[-100:].mean()) < float(loss[:100].mean())
+    assert tree.attrs["num_grad_evals"] == steps
+
+
+def vector_model(y, mask):
+    theta = pyro.sample("theta", dist.Normal(0.0, 10.0).expand([2]).to_event(1))
+    with pyro.plate("point", y.shape[0]):
+        pyro.sample("y", dist.Normal(theta, 1.0).to_event(1).mask(mask), obs=y)
+
+
+def test_vector_sites_dims_coords_and_masked_log_likelihood():
+    y = torch.randn(6, 2, generator=torch.Generator().manual_seed(1))
+    mask = torch.tensor([True, False, True, True, False, True])
+    tree = fit(
+        vector_model, {"y": y, "mask": mask}, method="svi", num_samples=10, svi_steps=20,
+        progress=False, dims={"y": ["point", "component"], "theta": ["component"]},
+        coords={"component": ["u", "v"]},
+    )
+    assert tree["posterior"]["theta"].dims == ("chain", "draw", "component")
+    assert list(tree["posterior"]["component"].values) == ["u", "v"]
+    assert tree["posterior_predictive"]["y"].dims == ("chain", "draw", "point", "component")
+    ll = tree["log_likelihood"]["y"]
+    assert ll.dims == ("chain", "draw", "point")  # the event dim is summed
+    theta = torch.as_tensor(tree["posterior"]["theta"][0, 3].values)
+    expected = dist.Normal(theta, 1.0).log_prob(y).sum(-1) * mask  # masked entries are 0
+    np.testing.assert_allclose(ll[0, 3], expected, rtol=1e-12)
+
+
+class NotPositiveDefiniteError(RuntimeError):
+    """Stands in for bayespd.sparse.NotPositiveDefiniteError (matched by class name)."""
+
+
+def test_not_positive_definite_is_a_divergence(y, exact):
+    mean, sd = exact
+    bound = 2.5 * sd  # reached by a few percent of the trajectories
+
+    def fragile(y):
+        mu = pyro.sample("mu", dist.Normal(0.0, PRIOR_SD))
+        if abs(float(mu) - mean) > bound:
+            raise NotPositiveDefiniteError("stiffness is not positive definite")
+        with pyro.plate("obs", N):
+            pyro.sample("y", dist.Normal(mu, 1.0), obs=y)
+
+    tree = fit(fragile, {"y": y}, num_samples=DRAWS, num_warmup=DRAWS, progress=False,
+               init_values={"mu": mean})
+    assert int(tree["sample_stats"]["diverging"].sum()) > 0
+    mu = tree["posterior"]["mu"]
+    assert float(abs(mu - mean).max()) < bound
+    # the sampler sees the posterior truncated to |mu - mean| < bound
+    truncated = stats.truncnorm(-2.5, 2.5, loc=mean, scale=sd)
+    check_moments(mu, truncated.mean(), truncated.std(), mean_tol=4 * mcse(mu))
+    with pytest.warns(UserWarning, match="divergent"):
+        summary(tree)
+
+
+def test_fit_rejects_unknown_method(y):
+    with pytest.raises(ValueError, match="method"):
+        fit(model, {"y": y}, method="hmc")
+
+
+def test_scaled_beta():
+    d = ScaledBeta(LOW, HIGH, 2.0, 3.0)
+    x = torch.linspace(0.6, 1.9, 7)
+    beta = dist.Beta(2.0, 3.0)
+    expected = beta.log_prob((x - LOW) / (HIGH - LOW)) - math.log(HIGH - LOW)
+    torch.testing.assert_close(d.log_prob(x), expected)
+    assert isinstance(d.support, constraints.interval)
+    assert (d.support.lower_bound, d.support.upper_bound) == (LOW, HIGH)
+    to_x = biject_to(d.support)
+    assert isinstance(to_x.codomain, constraints.interval)
+    ends = to_x(torch.tensor([-40.0, 0.0, 40.0]))
+    assert ends[0] >= LOW and ends[2] <= HIGH and ends[1] == pytest.approx((LOW + HIGH) / 2)
+    draws = d.sample((20000,))
+    assert float(draws.min()) > LOW and float(draws.max()) < HIGH
+    assert float(draws.mean()) == pytest.approx(float(d.mean), abs=4 * float(d.variance) ** 0.5 / 141)
+    assert d.expand([3]).sample().shape == (3,)
+    with pytest.raises(ValueError):
+        ScaledBeta(2.0, 1.0)

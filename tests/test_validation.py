@@ -1,0 +1,64 @@
+"""Bad input is refused early with a ValueError whose message names the fix."""
+import numpy as np
+import pytest
+import torch
+
+import bayespd as bp
+
+
+@pytest.fixture(scope="module")
+def plate():
+    p = bp.grid_2d(10.0, 6.0, 1.0)
+    mat = bp.LPS(p, bp.find_bonds(p, 2.5))
+    scene = bp.Scene(mat, [bp.Dirichlet.layer(p, "left", 2.5)], [bp.Load(p.layer("right", 1.0), (1.0, 0.0))])
+    return p, mat, scene
+
+
+@pytest.mark.parametrize("params, match", [
+    ({"K": -1.0, "G": 1.0, "delta": 2.0}, "K must be positive"),
+    ({"K": float("nan"), "G": 1.0, "delta": 2.0}, "K contains NaN"),
+    ({"K": 1.0, "G": 0.0, "delta": 2.0}, "G must be positive"),
+    ({"K": 1.0, "G": 1.0, "delta": 0.5}, "smaller than the grid spacing"),
+    ({"K": 1.0, "G": 1.0, "delta": 3.0}, "larger delta_max"),
+    ({"K": 1.0, "G": 1.0}, "missing \\['delta'\\]"),
+])
+def test_bad_params(plate, params, match):
+    with pytest.raises(ValueError, match=match):
+        plate[2].solve(params)
+
+
+def test_per_particle_field_of_wrong_length(plate):
+    with pytest.raises(ValueError, match="one value per particle"):
+        plate[2].solve({"K": torch.ones(3), "G": 1.0, "delta": 2.0})
+
+
+@pytest.mark.parametrize("nu", [0.5, 0.7, -1.0])
+def test_poisson_ratio_at_or_beyond_limits(nu):
+    with pytest.raises(ValueError, match="nu < 0.5|\\(-1, 0.5\\)"):
+        bp.moduli_from_young(4000.0, nu)
+
+
+def test_empty_regions(plate):
+    p = plate[0]
+    with pytest.raises(ValueError, match="load region is empty"):
+        bp.Load(p.box((100, 100), (101, 101)), (1.0, 0.0))
+    with pytest.raises(ValueError, match="Dirichlet region is empty"):
+        bp.Dirichlet(np.zeros(p.n, bool))
+
+
+def test_thin_dirichlet_layer(plate):
+    p, mat, _ = plate
+    with pytest.raises(ValueError, match="at least one horizon thick"):
+        bp.Scene(mat, [bp.Dirichlet.layer(p, "left", 1.0)], [bp.Load(p.layer("right", 1.0), (1.0, 0.0))])
+
+
+def test_observations_outside_body(plate):
+    p = plate[0]
+    with pytest.raises(ValueError, match="outside the body"):
+        bp.Observation(p, [[5.0, 3.0], [50.0, 3.0]])
+    holed = p.where(~p.box((4.2, 2.2), (5.8, 3.8)))  # a 2 x 2 hole
+    with pytest.raises(ValueError, match="outside the body"):
+        bp.Observation(holed, [[5.0, 3.0]])
+    obs = bp.Observation(holed, [[3.25, 1.5]])  # inside the material: linear interpolation
+    u = torch.as_tensor(holed.x) @ torch.tensor([[1.0, 2.0], [3.0, 4.0]]).T
+    np.testing.assert_allclose(obs(u), [[3.25 + 2 * 1.5, 3 * 3.25 + 4 * 1.5]], rtol=1e-12)
