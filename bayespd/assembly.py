@@ -24,6 +24,8 @@ class Gram:
         self.rows, self.cols = rows[self.order], cols[self.order]
         self.shape = (n_rows, n_cols)
         self.indptr = np.searchsorted(self.rows, np.arange(n_rows + 1))
+        self._rows_t, self._cols_t = torch.as_tensor(self.rows), torch.as_tensor(self.cols)
+        self._order_t = torch.as_tensor(self.order)
 
     def operator(self, data) -> sp.csr_matrix:
         d = np.asarray(data)[self.order]
@@ -50,17 +52,15 @@ class Gram:
 
     def apply(self, data: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """A x for a flat vector x (differentiable in data and x)."""
-        rows, cols = torch.as_tensor(self.rows), torch.as_tensor(self.cols)
-        contrib = data[torch.as_tensor(self.order)] * x[cols]
-        return torch.zeros(self.shape[0], dtype=contrib.dtype).index_add(0, rows, contrib)
+        contrib = data[self._order_t] * x[self._cols_t]
+        return torch.zeros(self.shape[0], dtype=contrib.dtype).index_add(0, self._rows_t, contrib)
 
     def values(self, data: torch.Tensor, w: torch.Tensor, pattern: Pattern) -> torch.Tensor:
         """A^T diag(w) A on ``pattern`` as a differentiable torch expression."""
         k1, k2 = self._pairs
         if not hasattr(self, "_targets") or self._targets[0] is not pattern:
             self._targets = (pattern, torch.as_tensor(pattern.position(self.cols[k1], self.cols[k2])))
-        order = torch.as_tensor(self.order)
-        d = data[order]
+        d = data[self._order_t]
         contrib = w[torch.as_tensor(self.rows[k1])] * d[torch.as_tensor(k1)] * d[torch.as_tensor(k2)]
         return torch.zeros(pattern.nnz, dtype=contrib.dtype).index_add(0, self._targets[1], contrib)
 

@@ -12,7 +12,7 @@ import xarray as xr
 from pyro import poutine
 from pyro.infer import MCMC, NUTS, SVI, Trace_ELBO
 from pyro.infer.autoguide import AutoMultivariateNormal
-from pyro.infer.autoguide.initialization import init_to_median, init_to_value
+from pyro.infer.autoguide.initialization import InitMessenger, init_to_median, init_to_value
 from pyro.ops.integrator import register_exception_handler
 from pyro.optim import ClippedAdam
 from tqdm.auto import tqdm
@@ -77,6 +77,16 @@ class _RecordingNUTS(NUTS):
         return z
 
 
+def _max_plate_nesting(model, data, init):
+    """As Pyro guesses it, but running the model at the initial values, not at prior draws
+    (which may make the model raise)."""
+    with poutine.block():
+        trace = poutine.trace(InitMessenger(init)(model)).get_trace(**data)
+    dims = [frame.dim for site in trace.nodes.values() if site["type"] == "sample"
+            for frame in site["cond_indep_stack"] if frame.vectorized]
+    return -min(dims) if dims else 0
+
+
 def _run_nuts(model, data, num_samples, num_warmup, num_chains, seed, init, progress):
     register_exception_handler(
         "bayespd_not_positive_definite",
@@ -84,9 +94,10 @@ def _run_nuts(model, data, num_samples, num_warmup, num_chains, seed, init, prog
         warn_on_overwrite=False,
     )
     samples, stats, grad_evals = [], [], 0
+    plates = _max_plate_nesting(model, data, init)
     for chain in range(num_chains):
         pyro.set_rng_seed(seed + chain)
-        kernel = _RecordingNUTS(model, init_strategy=init)
+        kernel = _RecordingNUTS(model, init_strategy=init, max_plate_nesting=plates)
         mcmc = MCMC(kernel, num_samples=num_samples, warmup_steps=num_warmup,
                     disable_progbar=not progress)
         mcmc.run(**data)
@@ -206,7 +217,7 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
         "created_at": datetime.now(timezone.utc).isoformat(),
         "inference_library": "pyro",
         "inference_library_version": pyro.__version__,
-        "torch_version": torch.__version__,
+        "torch_version": str(torch.__version__),  # TorchVersion would not write to NetCDF
     }
     tree = build_tree(groups, attrs, dims, coords)
     if method == "svi":

@@ -1,0 +1,37 @@
+"""Helpers shared by the experiment scripts: run folders and atomic metrics files."""
+from __future__ import annotations
+
+import json
+import os
+import platform
+import sys
+import tempfile
+from datetime import datetime, timezone
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # experiments import models/ from the repository root
+    sys.path.insert(0, str(ROOT))
+
+
+def run_dir(name: str) -> Path:
+    path = ROOT / "runs" / name
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def write_atomic(path: Path, text: str) -> None:
+    """Write text to path via a temporary file and os.replace, so readers never see half a file."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".")
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+    os.replace(tmp, path)
+
+
+def write_metrics(name: str, metrics: dict) -> Path:
+    """runs/<name>/metrics.json with the machine and date added."""
+    metrics = dict(metrics, name=name, machine=f"{platform.machine()} {os.cpu_count()} cores",
+                   date=datetime.now(timezone.utc).isoformat(timespec="seconds"))
+    path = run_dir(name) / "metrics.json"
+    write_atomic(path, json.dumps(metrics, indent=2, default=float))
+    return path

@@ -1,0 +1,1 @@
+"""Pyro probabilistic programs, one per calibration problem, written against bayespd's public API."""
