@@ -9,6 +9,12 @@ import tempfile
 from datetime import datetime, timezone
 from pathlib import Path
 
+import torch
+
+# The experiments' problems are small: one thread avoids oversubscribing a 2-core machine
+# (measured: tiny torch ops 10x slower with 2 threads while another process runs).
+torch.set_num_threads(1)
+
 ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # experiments import models/ from the repository root
     sys.path.insert(0, str(ROOT))

@@ -5,6 +5,7 @@ import torch
 import bayespd as bp
 
 torch.set_default_dtype(torch.float64)
+torch.set_num_threads(1)  # small problems: threads only add overhead on 2 cores
 
 
 def plate_scene(nx=10, ny=6, h=1.0, delta_max=2.5, material="lps", plane="stress"):

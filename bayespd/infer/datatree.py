@@ -18,7 +18,7 @@ SAMPLE_DIMS = ("chain", "draw")
 
 
 def build_tree(groups, attrs=None, dims=None, coords=None) -> xr.DataTree:
-    """DataTree from ``{group: {variable: array}}``.
+    """DataTree from ``{group: {variable: array}}`` (or ``{group: Dataset}``, kept as is).
 
     Arrays start with ``(chain, draw)`` except in ``observed_data``. The remaining axes of
     variable ``v`` are named ``dims[v]`` (padded or cut to length) or ``v_dim_0``, ...;
@@ -27,7 +27,9 @@ def build_tree(groups, attrs=None, dims=None, coords=None) -> xr.DataTree:
     nodes = {"/": xr.Dataset(attrs=attrs or {})}
     for group, arrays in groups.items():
         sample_dims = () if group == "observed_data" else SAMPLE_DIMS
-        nodes[group] = _dataset(arrays, sample_dims, dims or {}, coords or {})
+        if not isinstance(arrays, xr.Dataset):
+            arrays = _dataset(arrays, sample_dims, dims or {}, coords or {})
+        nodes[group] = arrays
     return xr.DataTree.from_dict(nodes)
 
 

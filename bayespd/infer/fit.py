@@ -14,8 +14,12 @@ from pyro.infer import MCMC, NUTS, SVI, Trace_ELBO
 from pyro.infer.autoguide import AutoMultivariateNormal
 from pyro.infer.autoguide.initialization import InitMessenger, init_to_median, init_to_value
 from pyro.ops.integrator import register_exception_handler
+from pyro.poutine.util import site_is_subsample
 from pyro.optim import ClippedAdam
+from torch.distributions import biject_to
 from tqdm.auto import tqdm
+
+from bayespd.sparse import NotPositiveDefiniteError
 
 from .datatree import build_tree
 
@@ -31,8 +35,9 @@ class _RecordingNUTS(NUTS):
     acceptance probability over the trajectory, the quantity step-size adaptation targets).
     """
 
-    def __init__(self, model, **kwargs):
+    def __init__(self, model, seed_covariance=None, **kwargs):
         super().__init__(model, **kwargs)
+        self.seed_covariance = seed_covariance
         self.stats = defaultdict(list)
         self.num_grad_evals = 0
 
@@ -45,6 +50,15 @@ class _RecordingNUTS(NUTS):
             return potential_fn(z)
 
         self.potential_fn = counted
+
+    def _initialize_adapter(self):
+        """Start from ``seed_covariance`` (unconstrained space, sites in sorted order) as the
+        inverse mass matrix, then find a step size for it; adaptation continues as usual."""
+        super()._initialize_adapter()
+        if self.seed_covariance is not None:
+            names = tuple(sorted(self.initial_params))
+            self.mass_matrix_adapter.inverse_mass_matrix = {names: self.seed_covariance}
+            self._adapter.reset_step_size_adaptation(self._initial_params)
 
     def _sample_r(self, name):
         r, r_unscaled = super()._sample_r(name)
@@ -87,17 +101,33 @@ def _max_plate_nesting(model, data, init):
     return -min(dims) if dims else 0
 
 
-def _run_nuts(model, data, num_samples, num_warmup, num_chains, seed, init, progress):
+def unconstrained_covariance(model, data, tree) -> torch.Tensor:
+    """Covariance of a fit's posterior draws on Pyro's unconstrained space, latent sites in
+    sorted order: a seed for NUTS's dense mass matrix (e.g. from a quick SVI fit)."""
+    with poutine.block():
+        trace = poutine.trace(model).get_trace(**data)
+    columns = []
+    for name in sorted(n for n, s in trace.nodes.items() if s["type"] == "sample"
+                       and not s["is_observed"] and not site_is_subsample(s)):
+        draws = torch.as_tensor(tree["posterior"][name].values).reshape(-1, trace.nodes[name]["value"].numel())
+        columns.append(biject_to(trace.nodes[name]["fn"].support).inv(draws))
+    return torch.cov(torch.cat(columns, dim=1).T)
+
+
+def _run_nuts(model, data, num_samples, num_warmup, num_chains, seed, init, progress, dense_mass,
+              seed_covariance):
     register_exception_handler(
         "bayespd_not_positive_definite",
-        lambda e: type(e).__name__ == "NotPositiveDefiniteError",
+        lambda e: isinstance(e, NotPositiveDefiniteError),
         warn_on_overwrite=False,
     )
     samples, stats, grad_evals = [], [], 0
     plates = _max_plate_nesting(model, data, init)
     for chain in range(num_chains):
         pyro.set_rng_seed(seed + chain)
-        kernel = _RecordingNUTS(model, init_strategy=init, max_plate_nesting=plates)
+        kernel = _RecordingNUTS(model, init_strategy=init, max_plate_nesting=plates,
+                                full_mass=dense_mass or seed_covariance is not None,
+                                seed_covariance=seed_covariance)
         mcmc = MCMC(kernel, num_samples=num_samples, warmup_steps=num_warmup,
                     disable_progbar=not progress)
         mcmc.run(**data)
@@ -113,12 +143,13 @@ def _run_svi(model, data, num_samples, seed, steps, lr, init, progress):
     pyro.set_rng_seed(seed)
     with pyro.get_param_store().scope():
         guide = AutoMultivariateNormal(model, init_loc_fn=init)
-        svi = SVI(model, guide, ClippedAdam({"lr": lr, "lrd": 0.1 ** (1 / steps)}), Trace_ELBO())
-        losses = np.array([svi.step(**data) for _ in tqdm(range(steps), "SVI", disable=not progress)])
+        optim = ClippedAdam({"lr": lr, "lrd": 0.1 ** (1 / steps)})  # lr / 10 at the end
+        svi = SVI(model, guide, optim, Trace_ELBO())
+        losses = [svi.step(**data) for _ in tqdm(range(steps), "SVI", disable=not progress)]
         with torch.no_grad():
             draws = [guide(**data) for _ in range(num_samples)]
     posterior = {k: torch.stack([d[k] for d in draws])[None] for k in draws[0]}
-    return posterior, losses
+    return posterior, xr.Dataset({"svi_loss": ("svi_step", np.array(losses))})
 
 
 def _replay(model, data, posterior, observed, progress):
@@ -152,7 +183,7 @@ def _numpy(arrays):
 
 def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, num_chains=2,
         seed=0, svi_steps=2000, svi_lr=0.02, init_values=None, progress=True, observed="y",
-        dims=None, coords=None):
+        dims=None, coords=None, dense_mass=False, mass_matrix_from=None):
     """Sample the posterior of ``model(**data)`` and return an ArviZ-style ``xarray.DataTree``.
 
     ``data[observed]`` is the observed tensor, scored by the sample site of the same name.
@@ -162,15 +193,17 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
       on a 2-core machine), chain ``c`` seeded with ``seed + c``. Chains start at
       ``init_values`` (other sites at the prior median), else at the prior median. A
       ``NotPositiveDefiniteError`` raised by the model inside a trajectory counts as a
-      divergence (the proposal is rejected) instead of crashing.
+      divergence (the proposal is rejected) instead of crashing. ``dense_mass=True`` adapts
+      a full mass matrix (for correlated posteriors, e.g. bulk modulus against horizon);
+      ``mass_matrix_from=<DataTree>`` seeds it with the covariance of that fit's draws on
+      the unconstrained space (e.g. a quick SVI fit), which saves most of the early warmup.
       ``sample_stats``: ``lp``, ``energy``, ``step_size``, ``tree_depth``, ``n_steps``,
       ``diverging``, ``acceptance_rate`` per draw (see ``_RecordingNUTS``).
     * ``"svi"``: ``AutoMultivariateNormal`` guide (loc at ``init_values`` / prior median),
       ``Trace_ELBO``, ``svi_steps`` steps of ``ClippedAdam`` whose learning rate decays
       geometrically from ``svi_lr`` to ``svi_lr / 10`` (a constant rate leaves the
       single-sample gradient noise in the result); then ``num_samples`` guide draws as one
-      chain. ``sample_stats`` holds only ``svi_loss`` (ELBO loss) over
-      dim ``svi_step``.
+      chain. ``sample_stats`` holds only ``svi_loss`` (ELBO loss) over dim ``svi_step``.
 
     Both then run the model once per draw for ``log_likelihood`` (pointwise, of the observed
     site, with its mask and scale applied: masked entries are 0, so each draw's sum is the
@@ -184,17 +217,20 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
         raise ValueError(f"method must be 'nuts' or 'svi', not {method!r}")
     init = init_to_median
     if init_values:
-        values = {k: torch.as_tensor(v, dtype=torch.get_default_dtype()) for k, v in init_values.items()}
+        dtype = torch.get_default_dtype()
+        values = {k: torch.as_tensor(v, dtype=dtype) for k, v in init_values.items()}
         init = init_to_value(values=values, fallback=init_to_median)
     start = time.perf_counter()
     if method == "nuts":
         posterior, stats, grad_evals = _run_nuts(
-            model, data, num_samples, num_warmup, num_chains, seed, init, progress)
-        settings = {"num_samples": num_samples, "num_warmup": num_warmup, "num_chains": num_chains}
+            model, data, num_samples, num_warmup, num_chains, seed, init, progress, dense_mass,
+            None if mass_matrix_from is None else unconstrained_covariance(model, data, mass_matrix_from))
+        settings = {"num_warmup": num_warmup, "num_chains": num_chains, "dense_mass": dense_mass}
     else:
-        posterior, losses = _run_svi(model, data, num_samples, seed, svi_steps, svi_lr, init, progress)
-        stats, grad_evals = None, svi_steps
-        settings = {"num_samples": num_samples, "svi_steps": svi_steps, "svi_lr": svi_lr}
+        posterior, stats = _run_svi(
+            model, data, num_samples, seed, svi_steps, svi_lr, init, progress)
+        grad_evals = svi_steps
+        settings = {"svi_steps": svi_steps, "svi_lr": svi_lr}
     wall_time = time.perf_counter() - start
 
     start = time.perf_counter()
@@ -202,12 +238,13 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
     loglik, predictive, deterministic = _replay(model, data, posterior, observed, progress)
     groups = {
         "posterior": _numpy({**posterior, **deterministic}),
-        **({"sample_stats": stats} if stats else {}),
+        "sample_stats": stats,
         "log_likelihood": _numpy({observed: loglik}),
         "posterior_predictive": _numpy({observed: predictive}),
         "observed_data": _numpy({observed: data[observed]}),
     }
-    settings.update(seed=seed, observed=observed, init_values=sorted(init_values or {}))
+    settings.update(num_samples=num_samples, seed=seed, observed=observed,
+                    init_values=sorted(init_values or {}))
     attrs = {
         "method": method,
         "wall_time_s": wall_time,
@@ -219,7 +256,4 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
         "inference_library_version": pyro.__version__,
         "torch_version": str(torch.__version__),  # TorchVersion would not write to NetCDF
     }
-    tree = build_tree(groups, attrs, dims, coords)
-    if method == "svi":
-        tree["sample_stats"] = xr.Dataset({"svi_loss": ("svi_step", losses)})
-    return tree
+    return build_tree(groups, attrs, dims, coords)

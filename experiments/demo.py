@@ -1,0 +1,181 @@
+"""Headline calibration: K, G, delta and sigma of a 2D LPS plate with a hole, from synthetic
+DIC data made on a grid twice as fine (no inverse crime) plus 1 % noise, by Tikhonov, SVI
+(full-rank Gaussian) and NUTS. Writes runs/demo/ (posterior.nc, svi.nc, metrics.json,
+summary.md, figures) and prints one table.
+
+    python experiments/demo.py [--quick]
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+
+import common  # noqa: F401  (puts the repository root on sys.path for models/)
+from common import run_dir, write_atomic, write_metrics
+
+import bayespd as bp
+from bayespd.infer import fit, save, summary, to_inference_data
+from bayespd.inverse import tikhonov
+from bayespd.observe import locate
+from models.elastic_plate import elastic_plate
+
+L, W, R, THICK = 40.0, 20.0, 4.0, 1.0  # mm: plate with a central hole
+CLAMP, LOAD_DEPTH, FORCE = 6.0, 2.0, (200.0, 0.0)  # clamped layer, loaded layer (mm), N
+E, NU, DELTA = 4000.0, 0.3, 5.0  # MPa, -, mm
+H_MODEL, DELTA_MAX, H_DATA = 2.0, 6.0, 1.0
+NOMINAL = {"K": 3900.0, "G": 1300.0}  # a handbook guess for the prior centre, not the truth
+NAMES = ["K", "G", "delta", "sigma"]
+
+
+def plate(h: float, delta_max: float, points=None) -> bp.Scene:
+    p = bp.grid_2d(L, W, h, thickness=THICK)
+    p = p.where(np.linalg.norm(p.x - [L / 2, W / 2], axis=1) > R)
+    material = bp.LPS(p, bp.find_bonds(p, delta_max), plane="stress")
+    observation = None if points is None else bp.Observation(p, points)
+    return bp.Scene(material, [bp.Dirichlet.layer(p, "left", CLAMP)],
+                    [bp.Load(p.layer("right", LOAD_DEPTH), FORCE)], observation)
+
+
+def synthetic_data(truth: dict, seed: int):
+    """DIC points at the model's particles, observed on a twice-finer model, plus 1 % noise."""
+    model_particles = plate(H_MODEL, DELTA_MAX).particles
+    candidates = model_particles.x[model_particles.x[:, 0] > CLAMP]
+    fine_particles = plate(H_DATA, DELTA).particles
+    points = candidates[~locate(fine_particles, candidates)[2]]
+    fine = plate(H_DATA, DELTA, points)
+    with torch.no_grad():
+        clean = fine.observe(fine.solve({k: truth[k] for k in ("K", "G", "delta")}))
+    sigma = 0.01 * float(clean.abs().max())
+    gen = torch.Generator().manual_seed(seed)
+    return points, clean + sigma * torch.randn(clean.shape, generator=gen), sigma
+
+
+def interval_row(name, truth, draws):
+    lo, hi = np.quantile(draws, [0.05, 0.95])
+    return {"mean": float(draws.mean()), "sd": float(draws.std()), "interval_90": [float(lo), float(hi)],
+            "covers_truth": bool(lo <= truth <= hi)}
+
+
+def posterior_report(tree, truth):
+    post = tree["posterior"]
+    return {k: interval_row(k, truth[k], post[k].values.reshape(-1)) for k in NAMES}
+
+
+def figures(out, scene, points, y, estimate, tree):
+    import arviz as az
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    with torch.no_grad():
+        fitted = scene.observe(scene.solve(estimate)).numpy()
+    y = y.numpy()
+    fig, axes = plt.subplots(2, 3, figsize=(13, 5.5), constrained_layout=True)
+    for c, comp in enumerate("xy"):
+        lim = np.abs(y[:, c]).max()
+        for ax, field, title in zip(axes[c], [y[:, c], fitted[:, c], y[:, c] - fitted[:, c]],
+                                    ["observed", "NUTS posterior mean", "residual"]):
+            v = lim if title != "residual" else np.abs(field).max()
+            sc = ax.scatter(points[:, 0], points[:, 1], c=field, cmap="RdBu_r", vmin=-v, vmax=v, s=28)
+            ax.set_title(f"u_{comp} {title} (mm)")
+            ax.set_aspect("equal")
+            fig.colorbar(sc, ax=ax, shrink=0.8)
+    fig.savefig(out / "fields.png", dpi=110)
+    plt.close(fig)
+    idata = to_inference_data(tree)
+    axes = az.plot_pair(idata, var_names=NAMES, kind="kde", marginals=True,
+                        reference_values={k: v for k, v in TRUTH.items()},
+                        reference_values_kwargs={"color": "k", "marker": "x", "markersize": 10})
+    axes.ravel()[0].figure.savefig(out / "pair.png", dpi=90)
+    plt.close("all")
+    az.plot_trace(idata, var_names=NAMES)
+    plt.gcf().savefig(out / "trace.png", dpi=90)
+    plt.close("all")
+
+
+K_TRUE, G_TRUE = (float(v) for v in bp.moduli_from_young(E, NU))
+TRUTH = {"K": K_TRUE, "G": G_TRUE, "delta": DELTA}
+
+
+def main(quick: bool, seed: int = 0):
+    out = run_dir("demo")
+    start = time.perf_counter()
+    points, y, sigma = synthetic_data(TRUTH, seed)
+    truth = dict(TRUTH, sigma=sigma)
+    scene = plate(H_MODEL, DELTA_MAX, points)
+    model = elastic_plate(scene, NOMINAL, noise_scale=0.05 * float(y.abs().max()))
+    data = {"y": y}
+    dims = {"y": ["point", "component"]}
+    coords = {"point": np.arange(len(points)), "component": ["x", "y"]}
+    methods = {}
+
+    res = tikhonov(scene, y, {**NOMINAL, "delta": 4.0}, bounds={"delta": (H_MODEL, DELTA_MAX)}, gtol=1e-8)
+    tik = dict(res.params, sigma=res.residual_rms)
+    methods["tikhonov"] = {"wall_time_s": res.wall_time_s, "gradient_evaluations": res.evaluations,
+                           "estimates": tik, "converged": res.converged}
+    init = {k: torch.tensor(v) for k, v in tik.items()}
+
+    svi_steps, draws, warmup = (300, 100, 60) if quick else (1000, 250, 100)
+    svi = fit(model, data, "svi", svi_steps=svi_steps, num_samples=1000, seed=seed,
+              init_values=init, dims=dims, coords=coords)
+    nuts = fit(model, data, "nuts", num_samples=draws, num_warmup=warmup, num_chains=2, seed=seed,
+               init_values=init, dims=dims, coords=coords, mass_matrix_from=svi)
+    for name, tree in (("svi", svi), ("nuts", nuts)):
+        methods[name] = {"wall_time_s": float(tree.attrs["wall_time_s"]),
+                         "gradient_evaluations": int(tree.attrs["num_grad_evals"]),
+                         **{"posterior": posterior_report(tree, truth)}}
+    save(nuts, out / "posterior.nc")
+    save(svi, out / "svi.nc")
+    diag = summary(nuts, var_names=NAMES)
+    r_hat_max = float(diag["r_hat"].max())
+    divergences = int(nuts["sample_stats"]["diverging"].sum())
+
+    nuts_post = methods["nuts"]["posterior"]
+    estimate = {k: nuts_post[k]["mean"] for k in ("K", "G", "delta")}
+    figures(out, scene, points, y, estimate, nuts)
+
+    targets = {f"nuts_{k}_covered": {"value": nuts_post[k]["covers_truth"], "target": True,
+                                     "passed": nuts_post[k]["covers_truth"]} for k in NAMES}
+    targets["nuts_r_hat_max"] = {"value": r_hat_max, "target": 1.05, "passed": r_hat_max < 1.05}
+    for k in ("K", "G"):
+        err = abs(tik[k] - truth[k]) / truth[k]
+        targets[f"tikhonov_{k}_rel_error"] = {"value": err, "target": 0.02, "passed": err < 0.02}
+    wall = time.perf_counter() - start
+    targets["wall_time_s"] = {"value": wall, "target": 300.0, "passed": wall < 300.0}
+    metrics = {"wall_time_s": wall, "truth": truth, "targets": targets, "methods": methods,
+               "nuts_divergences": divergences,
+               "settings": {"quick": quick, "seed": seed, "h_model": H_MODEL, "h_data": H_DATA,
+                            "delta_max": DELTA_MAX, "n_points": len(points), "n_particles": scene.particles.n,
+                            "noise": "1 % of max |u|", "nominal": NOMINAL, "backend": bp.sparse.default_backend(),
+                            "svi_steps": svi_steps, "nuts_draws_per_chain": draws, "nuts_warmup": warmup}}
+    write_metrics("demo", metrics)
+    table = render_table(truth, tik, methods)
+    write_atomic(out / "summary.md", "# Demo calibration\n\n" + table + "\n\n## NUTS diagnostics\n\n"
+                 + "```\n" + diag.to_string() + "\n```" + f"\n\nDivergences: {divergences}. Total wall time {wall:.1f} s.\n")
+    print(table)
+    print(f"\nNUTS max R-hat {r_hat_max:.3f}, divergences {divergences}; total {wall:.1f} s; wrote {out}")
+
+
+def render_table(truth, tik, methods):
+    rows = ["| parameter | truth | Tikhonov | SVI mean ± sd | SVI 90 % | covered | NUTS mean ± sd | NUTS 90 % | covered |",
+            "|---|---|---|---|---|---|---|---|---|"]
+    for k in NAMES:
+        s, n = methods["svi"]["posterior"][k], methods["nuts"]["posterior"][k]
+        rows.append(f"| {k} | {truth[k]:.4g} | {tik[k]:.4g} | {s['mean']:.4g} ± {s['sd']:.2g} | "
+                    f"[{s['interval_90'][0]:.4g}, {s['interval_90'][1]:.4g}] | {s['covers_truth']} | "
+                    f"{n['mean']:.4g} ± {n['sd']:.2g} | [{n['interval_90'][0]:.4g}, {n['interval_90'][1]:.4g}] | "
+                    f"{n['covers_truth']} |")
+    secs = " | ".join(f"{m} {methods[m]['wall_time_s']:.1f} s ({methods[m]['gradient_evaluations']} grads)"
+                      for m in methods)
+    return "\n".join(rows) + f"\n\nSeconds per method: {secs}"
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="fewer SVI steps and NUTS draws (smoke run)")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    main(args.quick, args.seed)
