@@ -46,13 +46,18 @@ def moduli_from_young(E, nu):
     return E / (3 * (1 - 2 * nu)), E / (2 * (1 + nu))
 
 
+class NonFiniteParameterError(ValueError):
+    """A modulus is NaN or inf: bad input, or a sampler's trajectory that blew up (which the
+    inference code treats as a rejected proposal)."""
+
+
 def check_modulus(name: str, value, n: int) -> torch.Tensor:
     """A modulus as a tensor broadcastable to (n,); refuse NaN, inf and non-positive values."""
     v = torch.as_tensor(value)
     if v.dim() > 1 or (v.dim() == 1 and v.shape[0] != n):
         raise ValueError(f"{name} must be a scalar or have one value per particle ({n})")
     if not bool(torch.all(torch.isfinite(v))):
-        raise ValueError(f"{name} contains NaN or inf: pass finite moduli")
+        raise NonFiniteParameterError(f"{name} contains NaN or inf: pass finite moduli")
     if not bool(torch.all(v > 0)):
         raise ValueError(f"{name} must be positive (got min {float(v.min()):g}): moduli "
                          "are positive; sample them on a log scale")

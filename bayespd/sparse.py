@@ -61,7 +61,7 @@ class Pattern:
     def position(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """Entry index of each (row, col); every pair must be in the pattern."""
         keys = self.cols * self.n + self.rows
-        query = np.asarray(cols) * self.n + np.asarray(rows)
+        query = np.asarray(cols, dtype=np.int64) * self.n + np.asarray(rows, dtype=np.int64)
         idx = np.searchsorted(keys, query)
         if not (np.all(idx < len(keys)) and np.array_equal(keys[idx], query)):
             raise KeyError("an entry is not in the pattern")

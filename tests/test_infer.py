@@ -15,6 +15,7 @@ from scipy import stats
 from torch.distributions import biject_to, constraints
 
 from bayespd.infer import ScaledBeta, fit, load, save, summary, to_inference_data
+from bayespd.sparse import NotPositiveDefiniteError
 
 N, PRIOR_SD, LOW, HIGH = 50, 10.0, 0.5, 2.0
 DRAWS = 300  # per chain, after as many warmup steps
@@ -203,10 +204,6 @@ def test_vector_sites_dims_coords_and_masked_log_likelihood():
     theta = torch.as_tensor(tree["posterior"]["theta"][0, 3].values)
     expected = dist.Normal(theta, 1.0).log_prob(y).sum(-1) * mask  # masked entries are 0
     np.testing.assert_allclose(ll[0, 3], expected, rtol=1e-12)
-
-
-class NotPositiveDefiniteError(RuntimeError):
-    """Stands in for bayespd.sparse.NotPositiveDefiniteError (matched by class name)."""
 
 
 def test_not_positive_definite_is_a_divergence(y, exact):

@@ -19,6 +19,7 @@ from pyro.optim import ClippedAdam
 from torch.distributions import biject_to
 from tqdm.auto import tqdm
 
+from bayespd.materials import NonFiniteParameterError
 from bayespd.sparse import NotPositiveDefiniteError
 
 from .datatree import build_tree
@@ -117,8 +118,8 @@ def unconstrained_covariance(model, data, tree) -> torch.Tensor:
 def _run_nuts(model, data, num_samples, num_warmup, num_chains, seed, init, progress, dense_mass,
               seed_covariance):
     register_exception_handler(
-        "bayespd_not_positive_definite",
-        lambda e: isinstance(e, NotPositiveDefiniteError),
+        "bayespd_numerical_trouble",
+        lambda e: isinstance(e, (NotPositiveDefiniteError, NonFiniteParameterError)),
         warn_on_overwrite=False,
     )
     samples, stats, grad_evals = [], [], 0
