@@ -53,7 +53,7 @@ def synthetic_data(truth: dict, seed: int):
     return points, clean + sigma * torch.randn(clean.shape, generator=gen), sigma
 
 
-def interval_row(name, truth, draws):
+def interval_row(truth, draws):
     lo, hi = np.quantile(draws, [0.05, 0.95])
     return {"mean": float(draws.mean()), "sd": float(draws.std()), "interval_90": [float(lo), float(hi)],
             "covers_truth": bool(lo <= truth <= hi)}
@@ -61,7 +61,7 @@ def interval_row(name, truth, draws):
 
 def posterior_report(tree, truth):
     post = tree["posterior"]
-    return {k: interval_row(k, truth[k], post[k].values.reshape(-1)) for k in NAMES}
+    return {k: interval_row(truth[k], post[k].values.reshape(-1)) for k in NAMES}
 
 
 def figures(out, scene, points, y, estimate, tree):
