@@ -4,6 +4,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 
 @dataclass(frozen=True)
@@ -76,15 +77,54 @@ class Particles:
         return mask
 
 
+def _cell_centres(extent, h: float, origin) -> np.ndarray:
+    """Centres of a regular grid of cubic cells of size h filling a box of the given extent."""
+    if not (h > 0 and all(e > 0 for e in extent)):
+        raise ValueError("the box extents and h must be positive")
+    counts = [round(e / h) for e in extent]
+    if any(abs(c * h - e) > 1e-9 * e for c, e in zip(counts, extent)):
+        raise ValueError(f"every extent of the box must be a multiple of h={h}")
+    axes = [o + h * (np.arange(c) + 0.5) for o, c in zip(origin, counts)]
+    return np.stack(np.meshgrid(*axes, indexing="xy"), axis=-1).reshape(-1, len(extent))
+
+
 def grid_2d(length: float, width: float, h: float, thickness: float = 1.0,
             origin=(0.0, 0.0)) -> Particles:
     """Cell-centred regular grid filling [0, length] x [0, width] (shifted by ``origin``)."""
-    if not (length > 0 and width > 0 and h > 0):
-        raise ValueError("length, width and h must be positive")
-    nx, ny = round(length / h), round(width / h)
-    if abs(nx * h - length) > 1e-9 * length or abs(ny * h - width) > 1e-9 * width:
-        raise ValueError(f"length and width must be multiples of h={h}")
-    gx = origin[0] + h * (np.arange(nx) + 0.5)
-    gy = origin[1] + h * (np.arange(ny) + 0.5)
-    x = np.stack(np.meshgrid(gx, gy, indexing="xy"), axis=-1).reshape(-1, 2)
+    x = _cell_centres((length, width), h, origin)
     return Particles(x, np.full(len(x), h * h * thickness), h, thickness)
+
+
+def grid_3d(length: float, width: float, depth: float, h: float, origin=(0.0, 0.0, 0.0)) -> Particles:
+    """Cell-centred cubic grid filling [0, length] x [0, width] x [0, depth] (+ ``origin``)."""
+    x = _cell_centres((length, width, depth), h, origin)
+    return Particles(x, np.full(len(x), h**3), h)
+
+
+def from_points(x, volume, h: float | None = None, thickness: float = 1.0) -> Particles:
+    """Particles at arbitrary positions ``x`` (N, dim) with cell volumes ``volume`` (N,).
+
+    ``h`` (the spacing used by the partial-volume rule) defaults to the cube (3D) or square
+    (2D, volume / thickness) root of the median cell volume.
+    """
+    x, volume = np.asarray(x, dtype=float), np.asarray(volume, dtype=float)
+    if x.ndim != 2 or x.shape[1] not in (2, 3) or len(x) == 0:
+        raise ValueError(f"x must be a non-empty (N, 2) or (N, 3) array, got shape {x.shape}")
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(volume))):
+        raise ValueError("particle positions or volumes contain NaN or inf: clean the input")
+    if volume.shape != (len(x),):
+        raise ValueError(f"volume must have one entry per particle ({len(x)}), got {volume.shape}")
+    if np.any(volume <= 0):
+        k = int(np.flatnonzero(volume <= 0)[0])
+        raise ValueError(f"{int(np.sum(volume <= 0))} particle(s) have zero or negative volume "
+                         f"(e.g. particle {k} at {x[k].tolist()}): fix or drop degenerate cells")
+    if x.shape[1] == 2:
+        h = h or float(np.sqrt(np.median(volume) / thickness))
+    else:
+        h = h or float(np.cbrt(np.median(volume)))
+    dup = cKDTree(x).query_pairs(1e-9 * h, output_type="ndarray")
+    if len(dup):
+        i, j = dup[0]
+        raise ValueError(f"{len(dup)} pair(s) of particles coincide (e.g. {i} and {j} at "
+                         f"{x[i].tolist()}): remove duplicate points")
+    return Particles(x, volume, float(h), thickness)

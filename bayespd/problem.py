@@ -1,6 +1,8 @@
 """Scene: a material with its constraints, loads and observation; solve(params) -> u."""
 from __future__ import annotations
 
+import warnings
+
 import torch
 
 from bayespd.boundary import Constraints, Dirichlet, Load
@@ -26,8 +28,9 @@ class Scene:
         delta_max = material.bonds.delta_max
         for bc in dirichlet:
             if bc.depth is not None and bc.depth < delta_max:
-                raise ValueError(f"Dirichlet layer depth {bc.depth:g} < delta_max "
-                                 f"{delta_max:g}: constrain a layer at least one horizon thick")
+                warnings.warn(f"Dirichlet layer depth {bc.depth:g} < delta_max {delta_max:g}: "
+                              "a layer thinner than the horizon under-constrains the nonlocal "
+                              "boundary; constrain a layer at least one horizon thick", stacklevel=2)
         self.material, self.particles, self.observation = material, p, observation
         self.constraints = Constraints(p, material.pattern, dirichlet)
         self.force = sum(load.nodal(p) for load in loads)
