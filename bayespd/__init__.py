@@ -7,14 +7,22 @@ import torch
 torch.set_default_dtype(torch.float64)
 
 from bayespd.discretize import Particles, from_points, grid_2d, grid_3d  # noqa: E402
-from bayespd.bonds import Bonds, find_bonds  # noqa: E402
+from bayespd.bonds import Bonds, find_bonds, precrack  # noqa: E402
+from bayespd.influence import Bernstein, Conical, Constant, Gaussian  # noqa: E402
 from bayespd.materials import LPS, BondBased, moduli_from_young  # noqa: E402
 from bayespd.boundary import Dirichlet, Load  # noqa: E402
-from bayespd.observe import Observation  # noqa: E402
+from bayespd.observe import (GridObservation, Observation, ParticleObservation,  # noqa: E402
+                             edge_mask, finite_mask, grid_points, model_data)
+from bayespd.dic import frame_data, read_dice  # noqa: E402
+from bayespd.vtk import Series as VTKSeries, write_pvd, write_vtu  # noqa: E402
+from bayespd.meshes import from_mesh  # noqa: E402
 from bayespd.problem import Scene  # noqa: E402
 from bayespd.sparse import NotPositiveDefiniteError, solve  # noqa: E402
 
 __all__ = [
-    "Particles", "grid_2d", "grid_3d", "from_points", "Bonds", "find_bonds", "LPS", "BondBased", "moduli_from_young",
-    "Dirichlet", "Load", "Observation", "Scene", "NotPositiveDefiniteError", "solve",
+    "Particles", "grid_2d", "grid_3d", "from_points", "from_mesh", "Bonds", "find_bonds", "precrack",
+    "Constant", "Conical", "Gaussian", "Bernstein", "LPS", "BondBased", "moduli_from_young",
+    "Dirichlet", "Load", "Observation", "ParticleObservation", "GridObservation", "grid_points",
+    "edge_mask", "finite_mask", "model_data", "read_dice", "frame_data", "write_vtu", "write_pvd",
+    "VTKSeries", "Scene", "NotPositiveDefiniteError", "solve",
 ]

@@ -1,10 +1,12 @@
-"""Bonds found once at ``delta_max``, with partial-volume weights continuous in delta."""
+"""Bonds found once at ``delta_max``, with partial-volume weights continuous in delta;
+pre-cracks remove the bonds that cross a segment (2D) or a planar polygon (3D)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
 import torch
+from matplotlib.path import Path
 from scipy.spatial import cKDTree
 
 from bayespd.discretize import Particles
@@ -28,6 +30,11 @@ class Bonds:
     @property
     def n(self) -> int:
         return len(self.i)
+
+    def without(self, remove: np.ndarray) -> "Bonds":
+        """The bonds where the boolean mask ``remove`` is false."""
+        keep = ~np.asarray(remove, dtype=bool)
+        return Bonds(self.i[keep], self.j[keep], self.xi[keep], self.length[keep], self.h, self.delta_max)
 
     def weight(self, delta) -> torch.Tensor:
         """Partial-volume fraction of each bond at horizon ``delta`` (see partial_volume)."""
@@ -67,3 +74,52 @@ def check_horizon(delta, h: float, delta_max: float) -> None:
     if d > delta_max * (1 + 1e-12):
         raise ValueError(f"delta={d:g} exceeds delta_max={delta_max:g} used for the bond "
                          "search: build the scene with a larger delta_max")
+
+
+def precrack(particles: Particles, bonds: Bonds, crack) -> Bonds:
+    """Remove the bonds crossing ``crack``: a segment [[x0, y0], [x1, y1]] in 2D, or the
+    vertices (k >= 3, 3) of a planar polygon in 3D. A bond is cut when its ends lie strictly
+    on opposite sides of the crack line (plane) and it passes through the segment (polygon);
+    place cracks between particle rows, since a bond ending on the crack is kept."""
+    crack = np.asarray(crack, dtype=float)
+    if not np.all(np.isfinite(crack)):
+        raise ValueError("crack coordinates contain NaN or inf")
+    a, b = particles.x[bonds.i], particles.x[bonds.j]
+    if particles.dim == 2:
+        if crack.shape != (2, 2):
+            raise ValueError("a 2D pre-crack is a segment [[x0, y0], [x1, y1]]")
+        cut = _crosses_segment(a, b, crack[0], crack[1])
+    else:
+        if crack.ndim != 2 or crack.shape[0] < 3 or crack.shape[1] != 3:
+            raise ValueError("a 3D pre-crack is a planar polygon given by (k >= 3, 3) vertices")
+        cut = _crosses_polygon(a, b, crack)
+    return bonds.without(cut)
+
+
+def _cross(o, p, q):
+    """z-component of (p - o) x (q - o): > 0 when q lies left of the line o -> p."""
+    return (p[..., 0] - o[..., 0]) * (q[..., 1] - o[..., 1]) - (p[..., 1] - o[..., 1]) * (q[..., 0] - o[..., 0])
+
+
+def _crosses_segment(a, b, c0, c1):
+    ends_apart = _cross(c0, c1, a) * _cross(c0, c1, b) < 0
+    return ends_apart & (_cross(a, b, c0) * _cross(a, b, c1) <= 0)
+
+
+def _crosses_polygon(a, b, polygon):
+    centre = polygon.mean(axis=0)
+    normal = np.cross(np.roll(polygon, -1, axis=0) - polygon, polygon - centre).sum(axis=0)  # Newell
+    size = np.ptp(polygon, axis=0).max()
+    if np.linalg.norm(normal) <= 1e-12 * size**2:
+        raise ValueError("the crack polygon is degenerate (its vertices are collinear)")
+    normal /= np.linalg.norm(normal)
+    if np.abs((polygon - centre) @ normal).max() > 1e-9 * size:
+        raise ValueError("the crack polygon is not planar: give vertices on one plane")
+    da, db = (a - centre) @ normal, (b - centre) @ normal
+    apart = da * db < 0
+    hit = a[apart] + (da[apart] / (da[apart] - db[apart]))[:, None] * (b[apart] - a[apart])
+    e1 = (polygon[0] - centre) / np.linalg.norm(polygon[0] - centre)
+    basis = np.stack([e1, np.cross(normal, e1)], axis=1)  # in-plane coordinates
+    cut = np.zeros(len(a), dtype=bool)
+    cut[apart] = Path((polygon - centre) @ basis).contains_points((hit - centre) @ basis)
+    return cut

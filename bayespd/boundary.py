@@ -60,6 +60,7 @@ class Constraints:
                     fixed[bc.mask, c] = True
                     prescribed[bc.mask, c] = v
         self.shape = (n, dim)
+        self.fixed_particles = fixed.any(axis=1)
         self.prescribed = torch.as_tensor(prescribed)
         self.has_prescribed = bool(np.any(prescribed))
         free = ~fixed.reshape(-1)

@@ -16,9 +16,14 @@ bulk modulus: 9KG/(3K+4G) in plane stress, K + G/3 in plane strain, K in 3D. Thi
 in 2D: expanding eq 45 with eq 41 gives the same coefficient 2(K + G/3)/q of theta x in plane
 strain). Seed 000 prints k + mu/9 for that coefficient; the calibration above gives k + mu/3.
 
-Bond-based PMB (seed 002 eq 1): W_i = 1/4 sum_j c s^2 |xi| V_j with c = 18K/(pi delta^4)
-in 3D, 9K/(pi t delta^3) in plane stress (nu = 1/3, E = K) and 72K/(5 pi t delta^3) in
-plane strain (nu = 1/4, E = 3K/2), calibrated on the continuum family.
+Bond-based PMB (seed 002 eq 1): W_i = 1/4 sum_j c omega s^2 |xi| V_j, calibrated on the
+continuum family so that an isotropic expansion stores the classical energy:
+c = 18K / int omega r dV in 3D (= 18K/(pi delta^4) for omega = 1), 3K / (pi t M_2) in plane
+stress (nu = 1/3, E = K; = 9K/(pi t delta^3)) and 24K / (5 pi t M_2) in plane strain
+(nu = 1/4, E = 3K/2; = 72K/(5 pi t delta^3)), with M_2 = int_0^delta omega r^2 dr.
+
+Every bond carries the weight omega(|xi|, delta) * beta(delta) (influence function times
+partial volume). LPS needs no recalibration for omega: m absorbs it.
 """
 from __future__ import annotations
 
@@ -31,6 +36,8 @@ import torch
 from bayespd.assembly import Gram, numeric_values, union_pattern
 from bayespd.bonds import Bonds
 from bayespd.discretize import Particles
+from bayespd.influence import Constant, Influence
+from bayespd.surface import bond_factors
 
 _C_DEV = {2: 8.0, 3: 15.0}
 
@@ -65,12 +72,22 @@ def check_modulus(name: str, value, n: int) -> torch.Tensor:
 
 
 class _Material:
-    """Shared machinery: a material is a list of Gram terms (operator, data, weights)."""
+    """Shared machinery: a material is a list of Gram terms (operator, data, weights).
 
-    def __init__(self, particles: Particles, bonds: Bonds, plane: str = "stress"):
+    ``influence`` weights the bonds (default constant); ``surface_correction=True`` scales
+    each bond's stiffness by energy-based directional factors (see ``bayespd.surface``).
+    """
+
+    moduli_names: tuple[str, ...] = ()
+
+    def __init__(self, particles: Particles, bonds: Bonds, plane: str = "stress",
+                 influence: Influence | None = None, surface_correction: bool = False):
         if plane not in ("stress", "strain"):
             raise ValueError("plane must be 'stress' or 'strain'")
         self.particles, self.bonds, self.plane = particles, bonds, plane
+        self.influence = influence or Constant()
+        self.surface_correction = surface_correction
+        self.param_names = (*self.moduli_names, *self.influence.param_names)
         self.dim = d = particles.dim
         self.volume = torch.as_tensor(particles.volume)
         self.length = torch.as_tensor(bonds.length)
@@ -89,6 +106,39 @@ class _Material:
     @cached_property
     def pattern(self):
         return union_pattern(self._grams())
+
+    def bond_weight(self, params: dict, delta) -> torch.Tensor:
+        """omega(|xi|, delta) * beta(delta) per bond; refuses particles left without a family."""
+        w = self.influence(self.length, delta, params) * self.bonds.weight(delta)
+        V = self.volume
+        family = torch.zeros(self.particles.n, dtype=w.dtype).index_add(
+            0, self._i, w.abs() * V[self._j]).index_add(0, self._j, w.abs() * V[self._i])
+        if bool(torch.any(family == 0)):
+            k = int(torch.nonzero(family == 0)[0])
+            raise ValueError(f"particle {k} at {self.particles.x[k].tolist()} has an empty family "
+                             "at this horizon: increase delta or remove isolated particles")
+        return w
+
+    def _moduli(self, params: dict) -> dict:
+        missing = set(self.param_names) - set(params)
+        if missing:
+            raise ValueError(f"{type(self).__name__} needs params {sorted(missing)} "
+                             f"(has {list(self.param_names)})")
+        n = self.particles.n
+        return {k: check_modulus(k, params[k], n).expand(n) for k in self.moduli_names}
+
+    def _bond_correction(self, moduli: dict, params: dict, delta):
+        """Surface-correction factor per bond, or 1 when the correction is off."""
+        return bond_factors(self, moduli, params, delta) if self.surface_correction else 1.0
+
+    def _terms(self, params: dict, delta):
+        moduli = self._moduli(params)
+        return self._stiffness_terms(moduli, params, delta, self._bond_correction(moduli, params, delta))
+
+    def energy_density(self, params: dict, delta, u: torch.Tensor) -> torch.Tensor:
+        """W_i per particle for u of shape (N, dim) (surface-corrected when switched on)."""
+        moduli = self._moduli(params)
+        return sum(self._energy_parts(moduli, params, delta, u, self._bond_correction(moduli, params, delta)))
 
     def stiffness(self, params: dict, delta) -> torch.Tensor:
         """Values of K(params, delta) on ``self.pattern``, differentiable (twice)."""
@@ -116,13 +166,15 @@ class _Material:
 class LPS(_Material):
     """Linear peridynamic solid (state-based), 2D plane stress / plane strain or 3D.
 
-    Params: ``{"K": bulk, "G": shear}`` (3D moduli; scalars or per-particle tensors).
+    Params: ``{"K": bulk, "G": shear}`` (3D moduli; scalars or per-particle tensors), plus
+    the influence function's parameters if it has any.
     """
 
-    param_names = ("K", "G")
+    moduli_names = ("K", "G")
 
-    def __init__(self, particles: Particles, bonds: Bonds, plane: str = "stress"):
-        super().__init__(particles, bonds, plane)
+    def __init__(self, particles: Particles, bonds: Bonds, plane: str = "stress",
+                 influence: Influence | None = None, surface_correction: bool = False):
+        super().__init__(particles, bonds, plane, influence, surface_correction)
         n, d, nb = particles.n, self.dim, bonds.n
         # family ends: one per bond touching a particle, then one self end per particle
         self._owner = torch.as_tensor(np.concatenate([bonds.i, bonds.j]))
@@ -145,76 +197,88 @@ class LPS(_Material):
             return K
         return 9 * K * G / (3 * K + 4 * G) if self.plane == "stress" else K + G / 3
 
-    def _moduli(self, params: dict):
-        n = self.particles.n
-        missing = {"K", "G"} - set(params)
-        if missing:
-            raise ValueError(f"LPS needs params {sorted(missing)} (bulk K and shear G)")
-        return check_modulus("K", params["K"], n), check_modulus("G", params["G"], n)
+    def continuum_moduli(self, moduli: dict):
+        """(bulk, shear) of the classical continuum this model is calibrated to."""
+        return self.kappa(moduli["K"], moduli["G"]), moduli["G"]
 
-    def weighted_volume(self, beta: torch.Tensor) -> torch.Tensor:
-        """m_i = sum_j w x^2 V_j with partial volumes (seed 000 eq 9)."""
-        f_b = beta[self._end_bond] * self.length[self._end_bond] ** 2 * self._end_volume
-        m = torch.zeros(self.particles.n, dtype=f_b.dtype).index_add(0, self._owner, f_b)
+    def _family_sum(self, per_end: torch.Tensor) -> torch.Tensor:
+        return torch.zeros(self.particles.n, dtype=per_end.dtype).index_add(0, self._owner, per_end)
+
+    def weighted_volume(self, w: torch.Tensor) -> torch.Tensor:
+        """m_i = sum_j omega beta |xi|^2 V_j (seed 000 eq 9) for bond weights w."""
+        m = self._family_sum(w[self._end_bond] * self.length[self._end_bond] ** 2 * self._end_volume)
         if bool(torch.any(m <= 0)):
-            raise ValueError("a particle has an empty family at this horizon: increase delta "
-                             "or remove isolated particles")
+            raise ValueError("a particle has a non-positive weighted volume m: the influence "
+                             "function must be non-negative on average over each family")
         return m
 
-    def _dilatation_vectors(self, beta, m):
+    def _dilatation_vectors(self, w, m):
         """g_e with theta_i = sum_e g_e . u_node(e) (seed 000 eq 10), self ends last."""
         bond, d = self._end_bond, self.dim
-        coef = d * beta[bond] * self.length[bond] * self._end_volume / m[self._owner]
+        coef = d * w[bond] * self.length[bond] * self._end_volume / m[self._owner]
         g = (coef * self._end_sign)[:, None] * self.unit[bond]
         g_self = -torch.zeros(self.particles.n, d, dtype=g.dtype).index_add(0, self._owner, g)
         return torch.cat([g, g_self])
 
-    def energy_density(self, params: dict, delta, u: torch.Tensor) -> torch.Tensor:
-        """W_i per particle (seed 001 eq 40) for u of shape (N, dim)."""
-        K, G = self._moduli(params)
+    def _energy_parts(self, moduli, params, delta, u, factor=1.0):
+        """W_i (seed 001 eq 40) rewritten as in the module docstring, split into the
+        dilatation part and the bond part (whose bonds carry the correction ``factor``)."""
+        K, G = moduli["K"], moduli["G"]
         d, c = self.dim, _C_DEV[self.dim]
-        beta = self.bonds.weight(delta)
-        m = self.weighted_volume(beta)
-        theta = self._dilatation.apply(self._dilatation_vectors(beta, m).reshape(-1), u.reshape(-1))
-        e2 = (beta * self.extension(u) ** 2)[self._end_bond] * self._end_volume
-        sum_e2 = torch.zeros(self.particles.n, dtype=e2.dtype).index_add(0, self._owner, e2)
-        return (0.5 * (self.kappa(K, G) - c * G / d**2) * theta**2 + 0.5 * c * G / m * sum_e2)
+        w = self.bond_weight(params, delta)
+        m = self.weighted_volume(w)
+        theta = self._dilatation.apply(self._dilatation_vectors(w, m).reshape(-1), u.reshape(-1))
+        sum_e2 = self._family_sum((factor * w * self.extension(u) ** 2)[self._end_bond] * self._end_volume)
+        return 0.5 * (self.kappa(K, G) - c * G / d**2) * theta**2, 0.5 * c * G / m * sum_e2
 
-    def _terms(self, params, delta):
-        K, G = self._moduli(params)
+    def _stiffness_terms(self, moduli, params, delta, factor=1.0):
+        K, G = moduli["K"], moduli["G"]
         d, c = self.dim, _C_DEV[self.dim]
-        beta = self.bonds.weight(delta)
-        m = self.weighted_volume(beta)
-        G = G.expand(self.particles.n)
-        s = self.volume * (self.kappa(K, G) - c * G / d**2)
+        w = self.bond_weight(params, delta)
+        m = self.weighted_volume(w)
         V = self.volume
-        k_b = c * beta * V[self._i] * V[self._j] * (G[self._i] / m[self._i] + G[self._j] / m[self._j])
-        g = self._dilatation_vectors(beta, m)
+        s = V * (self.kappa(K, G) - c * G / d**2)
+        k_b = factor * c * w * V[self._i] * V[self._j] * (G[self._i] / m[self._i] + G[self._j] / m[self._j])
+        g = self._dilatation_vectors(w, m)
         return [(self._extension, self._extension_data, k_b), (self._dilatation, g.reshape(-1), s)]
 
 
 class BondBased(_Material):
     """Prototype microelastic brittle (PMB) bond-based material, linearised.
 
-    Params: ``{"K": bulk}`` (scalar or per particle); Poisson's ratio is fixed by the model
-    (1/4 in 3D and plane strain, 1/3 in plane stress).
+    Params: ``{"K": bulk}`` (scalar or per particle), plus the influence function's
+    parameters if any; Poisson's ratio is fixed by the model (1/4 in 3D and plane strain,
+    1/3 in plane stress).
     """
 
-    param_names = ("K",)
+    moduli_names = ("K",)
 
-    def micromodulus(self, K: torch.Tensor, delta) -> torch.Tensor:
-        delta = torch.as_tensor(delta)
+    def micromodulus(self, K: torch.Tensor, delta, params: dict) -> torch.Tensor:
+        """c calibrated on the continuum family with this influence function."""
         if self.dim == 3:
-            return 18 * K / (math.pi * delta**4)
-        coef = 9.0 if self.plane == "stress" else 72.0 / 5.0
-        return coef * K / (math.pi * self.particles.thickness * delta**3)
+            return 18 * K / (4 * math.pi * self.influence.moment(3, delta, params))
+        coef = 3.0 if self.plane == "stress" else 24.0 / 5.0
+        return coef * K / (math.pi * self.particles.thickness * self.influence.moment(2, delta, params))
 
-    def _terms(self, params, delta):
-        if "K" not in params:
-            raise ValueError("BondBased needs params['K'] (bulk modulus)")
-        K = check_modulus("K", params["K"], self.particles.n).expand(self.particles.n)
-        beta = self.bonds.weight(delta)
-        c = self.micromodulus(K, delta)
+    def continuum_moduli(self, moduli: dict):
+        """(bulk, shear) of the classical continuum: nu is 1/3 (plane stress) or 1/4."""
+        K = moduli["K"]
+        if self.dim == 2 and self.plane == "stress":
+            return 0.75 * K, 0.375 * K
+        return (K if self.dim == 3 else 1.2 * K), 0.6 * K
+
+    def _bond_stiffness(self, moduli, params, delta):
+        c = self.micromodulus(moduli["K"], delta, params)
         c_b = 0.5 * (c[self._i] + c[self._j])
-        k_b = c_b * beta * self.volume[self._i] * self.volume[self._j] / self.length
-        return [(self._extension, self._extension_data, k_b)]
+        w = self.bond_weight(params, delta)
+        return c_b * w * self.volume[self._i] * self.volume[self._j] / self.length
+
+    def _energy_parts(self, moduli, params, delta, u, factor=1.0):
+        """(0, W_i) with W_i = 1/4 sum_j c omega beta s^2 |xi| V_j: half of each bond's
+        energy to each end; every bond carries the correction ``factor``."""
+        half = 0.25 * factor * self._bond_stiffness(moduli, params, delta) * self.extension(u) ** 2
+        per_node = torch.zeros(self.particles.n, dtype=half.dtype).index_add(0, self._i, half).index_add(0, self._j, half)
+        return torch.zeros_like(per_node), per_node / self.volume
+
+    def _stiffness_terms(self, moduli, params, delta, factor=1.0):
+        return [(self._extension, self._extension_data, factor * self._bond_stiffness(moduli, params, delta))]

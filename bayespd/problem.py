@@ -3,10 +3,13 @@ from __future__ import annotations
 
 import warnings
 
+import numpy as np
+import scipy.sparse as sp
 import torch
+from scipy.sparse.csgraph import connected_components
 
 from bayespd.boundary import Constraints, Dirichlet, Load
-from bayespd.observe import Observation
+from bayespd.observe import LinearObservation
 from bayespd.sparse import solve_form
 
 
@@ -19,7 +22,7 @@ class Scene:
     """
 
     def __init__(self, material, dirichlet: list[Dirichlet], loads: list[Load],
-                 observation: Observation | None = None):
+                 observation: LinearObservation | None = None):
         p = material.particles
         if not dirichlet:
             raise ValueError("a static scene needs at least one Dirichlet region")
@@ -33,6 +36,7 @@ class Scene:
                               "boundary; constrain a layer at least one horizon thick", stacklevel=2)
         self.material, self.particles, self.observation = material, p, observation
         self.constraints = Constraints(p, material.pattern, dirichlet)
+        _refuse_floating_pieces(material.bonds, self.constraints.fixed_particles)
         self.force = sum(load.nodal(p) for load in loads)
         self.param_names = (*material.param_names, "delta")
 
@@ -69,3 +73,18 @@ class Scene:
         if self.observation is None:
             raise ValueError("this scene has no observation operator")
         return self.observation(u)
+
+
+def _refuse_floating_pieces(bonds, fixed: np.ndarray) -> None:
+    """Each connected piece of the bond graph (a body cut through by a pre-crack, an
+    isolated particle) needs a Dirichlet region, else it floats and K is singular."""
+    n = len(fixed)
+    graph = sp.coo_matrix((np.ones(bonds.n), (bonds.i, bonds.j)), shape=(n, n))
+    count, label = connected_components(graph, directed=False)
+    anchored = np.zeros(count, dtype=bool)
+    anchored[label[fixed]] = True
+    if not anchored.all():
+        piece = np.flatnonzero(~anchored[label])
+        raise ValueError(f"{len(piece)} particle(s) (e.g. {piece[0]}) form a piece with no "
+                         "Dirichlet region: it can move as a rigid body (a crack through the "
+                         "body or an isolated particle?); constrain it or remove it")

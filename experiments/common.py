@@ -5,11 +5,12 @@ import json
 import os
 import platform
 import sys
-import tempfile
 from datetime import datetime, timezone
 from pathlib import Path
 
 import torch
+
+from bayespd.atomic import atomic_path
 
 # The experiments' problems are small: one thread avoids oversubscribing a 2-core machine
 # (measured: tiny torch ops 10x slower with 2 threads while another process runs).
@@ -28,10 +29,8 @@ def run_dir(name: str) -> Path:
 
 def write_atomic(path: Path, text: str) -> None:
     """Write text to path via a temporary file and os.replace, so readers never see half a file."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".")
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
 
 
 def write_metrics(name: str, metrics: dict) -> Path:

@@ -7,12 +7,13 @@ survive a NetCDF round trip.
 """
 
 import os
-import tempfile
 import warnings
 
 import arviz as az
 import numpy as np
 import xarray as xr
+
+from bayespd.atomic import atomic_path
 
 SAMPLE_DIMS = ("chain", "draw")
 
@@ -54,15 +55,8 @@ def to_inference_data(tree: xr.DataTree) -> az.InferenceData:
 
 def save(tree: xr.DataTree, path) -> None:
     """Write ``tree`` to NetCDF (h5netcdf) atomically: temp file in the same folder, then rename."""
-    path = os.path.abspath(os.fspath(path))
-    fd, tmp = tempfile.mkstemp(suffix=".tmp", dir=os.path.dirname(path))
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         tree.to_netcdf(tmp, engine="h5netcdf")
-        os.replace(tmp, path)
-    except BaseException:
-        os.remove(tmp)
-        raise
 
 
 def load(path) -> xr.DataTree:

@@ -1,0 +1,47 @@
+"""Energy-based surface correction (Madenci & Oterkus 2014, §4.2; Le & Bobaru 2018).
+
+A particle near a free surface (a hole, a pre-crack) has a truncated family, so a uniform
+strain stores less energy there than in the bulk: the body is too soft near its surfaces.
+For each axis a, the uniaxial probe strain e_a e_a^T gives every particle a factor
+
+    g_a,i = (W_classical - W_fixed,i) / W_bond,i,
+
+where W_bond is the part of the PD energy density carried by the bonds (all of it for
+bond-based; the deviatoric bond sum for LPS, whose dilatation part W_fixed is left as is).
+A bond with unit direction n takes the mean of its ends' factors along each axis and
+combines them on an ellipse (ellipsoid in 3D):
+
+    G_b = (sum_a (n_a / gbar_a)^2)^(-1/2).
+
+The factors depend on delta and the moduli and are differentiable in both.
+"""
+from __future__ import annotations
+
+import torch
+
+
+def classical_energy_density(bulk, shear, eps: torch.Tensor):
+    """kappa/2 tr(eps)^2 + G dev(eps):dev(eps) in the material's dimension."""
+    d = eps.shape[0]
+    tr = torch.trace(eps)
+    dev = eps - tr / d * torch.eye(d)
+    return 0.5 * bulk * tr**2 + shear * (dev * dev).sum()
+
+
+def bond_factors(material, moduli: dict, params: dict, delta) -> torch.Tensor:
+    """Correction factor G_b per bond (see the module docstring)."""
+    x = torch.as_tensor(material.particles.x)
+    bulk, shear = material.continuum_moduli(moduli)
+    i, j = material._i, material._j
+    inverse_square = 0.0
+    for a in range(material.dim):
+        eps = torch.zeros(material.dim, material.dim)
+        eps[a, a] = 1.0
+        fixed, bond = material._energy_parts(moduli, params, delta, x @ eps.T)
+        g = (classical_energy_density(bulk, shear, eps) - fixed) / bond
+        if not bool(torch.all(torch.isfinite(g) & (g > 0))):
+            raise ValueError("surface correction failed: a particle's family stores no energy "
+                             f"under uniaxial strain along axis {a} (an isolated particle or a "
+                             "family in one line?); remove it or switch the correction off")
+        inverse_square = inverse_square + (material.unit[:, a] / (0.5 * (g[i] + g[j]))) ** 2
+    return inverse_square ** -0.5
