@@ -36,6 +36,8 @@ class Load:
         if not self.mask.any():
             raise ValueError("the load region is empty: check the mask or layer depth")
         self.force = torch.as_tensor(force)
+        if not bool(torch.all(torch.isfinite(self.force))):
+            raise ValueError("the load contains NaN or inf: pass a finite force")
 
     def nodal(self, particles: Particles) -> torch.Tensor:
         """Nodal forces (N, dim): F * V_i / sum V over the region."""

@@ -26,6 +26,13 @@ class Particles:
             raise ValueError(f"x must be (N, 2) or (N, 3), got {self.x.shape}")
         if self.volume.shape != (len(self.x),):
             raise ValueError("volume must have one entry per particle")
+        if not (np.all(np.isfinite(self.x)) and np.all(np.isfinite(self.volume))):
+            raise ValueError("particle positions or volumes contain NaN or inf: clean the input")
+        if np.any(self.volume <= 0):
+            k = int(np.flatnonzero(self.volume <= 0)[0])
+            raise ValueError(f"{int(np.sum(self.volume <= 0))} particle(s) have zero or negative "
+                             f"volume (e.g. particle {k} at {self.x[k].tolist()}): fix or drop "
+                             "degenerate cells")
         if not (self.h > 0 and self.thickness > 0):
             raise ValueError("h and thickness must be positive")
 
@@ -110,21 +117,13 @@ def from_points(x, volume, h: float | None = None, thickness: float = 1.0) -> Pa
     x, volume = np.asarray(x, dtype=float), np.asarray(volume, dtype=float)
     if x.ndim != 2 or x.shape[1] not in (2, 3) or len(x) == 0:
         raise ValueError(f"x must be a non-empty (N, 2) or (N, 3) array, got shape {x.shape}")
-    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(volume))):
-        raise ValueError("particle positions or volumes contain NaN or inf: clean the input")
     if volume.shape != (len(x),):
         raise ValueError(f"volume must have one entry per particle ({len(x)}), got {volume.shape}")
-    if np.any(volume <= 0):
-        k = int(np.flatnonzero(volume <= 0)[0])
-        raise ValueError(f"{int(np.sum(volume <= 0))} particle(s) have zero or negative volume "
-                         f"(e.g. particle {k} at {x[k].tolist()}): fix or drop degenerate cells")
-    if x.shape[1] == 2:
-        h = h or float(np.sqrt(np.median(volume) / thickness))
-    else:
-        h = h or float(np.cbrt(np.median(volume)))
+    h = h or float(np.abs(np.median(volume) / thickness) ** (1 / x.shape[1]))
+    particles = Particles(x, volume, float(h), thickness)  # checks NaN and volumes
     dup = cKDTree(x).query_pairs(1e-9 * h, output_type="ndarray")
     if len(dup):
         i, j = dup[0]
         raise ValueError(f"{len(dup)} pair(s) of particles coincide (e.g. {i} and {j} at "
                          f"{x[i].tolist()}): remove duplicate points")
-    return Particles(x, volume, float(h), thickness)
+    return particles
