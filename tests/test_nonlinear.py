@@ -1,0 +1,119 @@
+"""Nonlinear bond force: f = -grad V, linear limit -K u + O(|u|^2), parameter gradients."""
+import numpy as np
+import pytest
+import torch
+
+import bayespd as bp
+from bayespd.nonlinear import NonlinearBonds
+
+DELTA = 2.7
+
+
+@pytest.fixture(scope="module")
+def plate():
+    p = bp.grid_2d(10.0, 8.0, 1.0)
+    return p, bp.find_bonds(p, 3.0)
+
+
+def setup(plate, cls, surface=False):
+    p, bonds = plate
+    mat = cls(p, bonds, plane="stress", surface_correction=surface)
+    params = {"K": torch.linspace(2000.0, 3000.0, p.n), "G": torch.linspace(1500.0, 900.0, p.n)}
+    return mat, params, NonlinearBonds(mat)
+
+
+def random_u(n, scale, seed=0, dim=2):
+    return scale * torch.randn(n, dim, generator=torch.Generator().manual_seed(seed))
+
+
+def damage_state(bonds, p, seed=1):
+    """Random intact fractions in [0, 1], and particle 0 (a corner) fully broken."""
+    mu = torch.rand(bonds.n, generator=torch.Generator().manual_seed(seed))
+    mu[torch.as_tensor((bonds.i == 0) | (bonds.j == 0))] = 0.0
+    return mu
+
+
+@pytest.mark.parametrize("cls", [bp.BondBased, bp.LPS])
+@pytest.mark.parametrize("damaged", [False, True])
+def test_force_is_minus_energy_gradient(plate, cls, damaged):
+    p, bonds = plate
+    mat, params, nl = setup(plate, cls, surface=not damaged)
+    mu = damage_state(bonds, p) if damaged else None
+    u = random_u(p.n, 0.05).requires_grad_()  # finite (5 % of h) deformation
+    load = torch.randn(p.n, 2, generator=torch.Generator().manual_seed(3))
+    eps = 0.7
+    V = nl.energy(u, params, DELTA, mu, load=load, eps=eps)
+    (grad,) = torch.autograd.grad(V, u)
+    f = nl.force(u.detach(), params, DELTA, mu)
+    expected = -grad  # = f + p - eps u
+    got = f + load - eps * u.detach()
+    assert torch.isfinite(got).all()
+    assert float((got - expected).norm() / expected.norm()) < 1e-10
+    if damaged:  # the fully broken particle feels only load and confinement
+        assert float(f[0].abs().max()) == 0.0
+
+
+@pytest.mark.parametrize("cls", [bp.BondBased, bp.LPS])
+def test_small_displacement_matches_linear_stiffness(plate, cls):
+    """|f(s u) + K s u| = O(s^2): the remainder falls with slope 2 as u is scaled."""
+    p, _ = plate
+    mat, params, nl = setup(plate, cls)
+    K = mat.numeric_stiffness(params, DELTA)
+    u = random_u(p.n, 1.0)
+    scales = [1e-2, 5e-3, 2.5e-3, 1.25e-3]
+    rem = []
+    for s in scales:
+        lin = -mat.pattern.matvec(K, (s * u).reshape(-1)).reshape(-1, 2)
+        f = nl.force(s * u, params, DELTA)
+        rem.append(float((f - lin).norm()))
+        assert rem[-1] < 0.05 * float(lin.norm())
+    slopes = np.diff(np.log(rem)) / np.diff(np.log(scales))
+    np.testing.assert_allclose(slopes, 2.0, atol=0.05)
+
+
+@pytest.mark.parametrize("cls", [bp.BondBased, bp.LPS])
+def test_rigid_rotation_is_force_free(plate, cls):
+    """A finite rigid rotation stretches no bond (the linearised force would not vanish)."""
+    p, _ = plate
+    mat, params, nl = setup(plate, cls)
+    c, s = np.cos(0.4), np.sin(0.4)
+    x = torch.as_tensor(p.x)
+    u = x @ torch.tensor([[c - 1, -s], [s, c - 1]]).T
+    assert float(nl.stretch(u).abs().max()) < 1e-14
+    f = nl.force(u, params, DELTA)
+    assert float(f.abs().max()) < 1e-12 * 3000.0
+
+
+@pytest.mark.parametrize("cls", [bp.BondBased, bp.LPS])
+def test_force_gradient_in_parameters(cls):
+    """Per-particle moduli, delta and mu: torch.autograd.gradcheck on a tiny plate."""
+    p = bp.grid_2d(5.0, 4.0, 1.0)
+    bonds = bp.find_bonds(p, 2.5)
+    nl = NonlinearBonds(cls(p, bonds))
+    u = random_u(p.n, 0.1)
+    K0 = torch.linspace(2.0, 3.0, p.n, requires_grad=True)
+    G0 = torch.linspace(1.5, 1.0, p.n, requires_grad=True)
+    delta = torch.tensor(2.3, requires_grad=True)
+    mu = torch.linspace(0.2, 1.0, bonds.n, requires_grad=True)
+
+    def f(K, G, delta, mu):
+        return nl.force(u, {"K": K, "G": G}, delta, mu)
+
+    assert torch.autograd.gradcheck(f, (K0, G0, delta, mu))
+
+
+@pytest.mark.parametrize("cls", [bp.BondBased, bp.LPS])
+def test_three_d_gradient_and_linear_limit(cls):
+    p = bp.grid_3d(4.0, 4.0, 3.0, 1.0)
+    mat = cls(p, bp.find_bonds(p, 2.0))
+    params = {"K": torch.linspace(2.0, 3.0, p.n), "G": 1.2}
+    nl = NonlinearBonds(mat)
+    u = random_u(p.n, 0.05, dim=3).requires_grad_()
+    (grad,) = torch.autograd.grad(nl.energy(u, params, 1.8), u)
+    f = nl.force(u.detach(), params, 1.8)
+    assert float((f + grad).norm() / grad.norm()) < 1e-10
+    K = mat.numeric_stiffness(params, 1.8)
+    rem = [float((nl.force(s * u.detach(), params, 1.8)
+                  + mat.pattern.matvec(K, s * u.detach().reshape(-1)).reshape(-1, 3)).norm())
+           for s in (1e-2, 5e-3)]
+    assert np.log2(rem[0] / rem[1]) == pytest.approx(2.0, abs=0.05)
