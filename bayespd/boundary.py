@@ -68,7 +68,8 @@ class Constraints:
         free = ~fixed.reshape(-1)
         self.pattern, entries = pattern.restrict(free)
         self._entries = torch.as_tensor(entries)
-        self._free_idx = torch.as_tensor(np.flatnonzero(free))
+        self.free_dofs = np.flatnonzero(free)  # flat dof indices d*i + a of the free dofs
+        self._free_idx = torch.as_tensor(self.free_dofs)
 
     def free_values(self, values: torch.Tensor) -> torch.Tensor:
         """Values of K_ff from values of K on the full pattern."""

@@ -1,0 +1,13 @@
+"""Time integrators: explicit dynamics (velocity Verlet) and overdamped Langevin dynamics
+(seed 002 eq 4) with white or spatially correlated (Karhunen-Loeve) noise."""
+from bayespd.solvers.dynamics import (NumericalInstabilityError, Trajectory, critical_time_step,
+                                      lumped_mass, stable_time_step, velocity_verlet)
+from bayespd.solvers.langevin import Langevin
+from bayespd.solvers.linear import LinearForce, largest_eigenvalue, linear_elastic, spd_factor
+from bayespd.solvers.noise import Covariance, KLCovariance, karhunen_loeve, white_noise
+
+__all__ = [
+    "NumericalInstabilityError", "Trajectory", "critical_time_step", "lumped_mass",
+    "stable_time_step", "velocity_verlet", "Langevin", "LinearForce", "largest_eigenvalue",
+    "linear_elastic", "spd_factor", "Covariance", "KLCovariance", "karhunen_loeve", "white_noise",
+]

@@ -1,0 +1,120 @@
+"""Linear pieces shared by the time integrators.
+
+``LinearForce`` is f(u) = p - A u with A = K + eps I: the force of the potential of seed 002
+eq 3 with the linearised bond energy, V(u) = u^T K u / 2 - p^T u + (eps / 2) u^T u.
+``largest_eigenvalue`` (Lanczos) gives stable time steps; ``spd_factor`` factorises a scipy
+SPD matrix with the project's sparse backends (CHOLMOD or SuperLU).
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+import torch
+
+from bayespd.sparse import Factor, Pattern
+
+
+def _numpy(x) -> np.ndarray:
+    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+
+
+class LinearForce:
+    """f(u) = p - A u for a sparse symmetric A (n x n) and load p (n,); u is (n,) or (n, batch).
+
+    ``matrix`` is A as scipy CSR (what the semi-implicit Langevin step takes as its operator).
+    """
+
+    def __init__(self, A, p=None):
+        self.matrix = sp.csr_matrix(A, dtype=np.float64)
+        n = self.matrix.shape[0]
+        self.load = torch.zeros(n) if p is None else torch.as_tensor(p, dtype=torch.float64).reshape(-1)
+        if self.load.shape != (n,):
+            raise ValueError(f"load must have {n} entries, got {tuple(self.load.shape)}")
+
+    @property
+    def n(self) -> int:
+        return self.matrix.shape[0]
+
+    def stiffness_times(self, u: torch.Tensor) -> torch.Tensor:
+        """A u."""
+        return torch.from_numpy(np.asarray(self.matrix @ _numpy(u))).to(u.dtype)
+
+    def __call__(self, u: torch.Tensor) -> torch.Tensor:
+        p = self.load.to(u.dtype).reshape(-1, *([1] * (u.dim() - 1)))
+        return p - self.stiffness_times(u)
+
+    def energy(self, u: torch.Tensor) -> torch.Tensor:
+        """V(u) = u^T A u / 2 - p^T u (per batch column)."""
+        return (u * (0.5 * self.stiffness_times(u) - self.load.to(u.dtype).reshape(-1, *([1] * (u.dim() - 1))))).sum(0)
+
+    def equilibrium(self) -> torch.Tensor:
+        """A^-1 p: the minimiser of V, i.e. the mean of the invariant law in the elastic regime."""
+        return torch.from_numpy(spd_factor(self.matrix).solve(self.load.numpy()))
+
+
+def linear_elastic(material, params: dict, delta, load=None, eps: float = 0.0,
+                   constraints=None) -> LinearForce:
+    """The linearised elastic force of ``material`` with confinement eps (seed 002 eq 3).
+
+    ``load`` is nodal forces (N, dim). With ``constraints`` (``boundary.Constraints``) the
+    state is the free dofs and prescribed displacements enter the load as -K_fc u_c;
+    without, the state is all N*dim dofs (node-major) and eps > 0 removes the rigid modes.
+    """
+    if not eps >= 0:
+        raise ValueError(f"the confinement eps must be >= 0, got {eps}")
+    values = material.numeric_stiffness(params, delta)
+    n_all = material.pattern.n
+    p = torch.zeros(n_all) if load is None else torch.as_tensor(load, dtype=torch.float64).reshape(-1)
+    if p.shape != (n_all,):
+        raise ValueError(f"load must be nodal forces (N, dim) with N*dim = {n_all}")
+    if constraints is None:
+        K = material.pattern.matrix(values)
+    else:
+        K = constraints.pattern.matrix(constraints.free_values(values))
+        if constraints.has_prescribed:
+            u_c = constraints.prescribed.reshape(-1).numpy()
+            p = p - torch.from_numpy(material.pattern.matrix(values) @ u_c)
+        p = constraints.free(p)
+    return LinearForce(K + eps * sp.identity(K.shape[0], format="csr"), p)
+
+
+def as_matvec(operator):
+    """A numpy matvec from a scipy matrix or a callable."""
+    if callable(operator):
+        return operator
+    return lambda v: operator @ v
+
+
+def largest_eigenvalue(matvec, n: int, tol: float = 1e-8) -> float:
+    """lambda_max of a symmetric operator on R^n by Lanczos (scipy ``eigsh``, fixed start
+    vector, so deterministic). The Ritz value approaches lambda_max from below."""
+    if n == 1:
+        return float(np.asarray(matvec(np.ones(1))).reshape(-1)[0])
+    op = spla.LinearOperator((n, n), matvec=lambda v: np.asarray(matvec(v)).reshape(-1), dtype=np.float64)
+    v0 = np.random.default_rng(0).standard_normal(n)
+    return float(spla.eigsh(op, k=1, which="LA", tol=tol, v0=v0, return_eigenvectors=False)[0])
+
+
+def hessian_operator(force, u: torch.Tensor, h: float | None = None):
+    """v -> (f(u) - f(u + h v)) / h: the Hessian of V at u by a forward difference (exact
+    for a linear force), for stability limits when no operator is given."""
+    u = u.detach().reshape(u.shape[0], -1)[:, 0]
+    f0 = force(u)
+    h = h or 1e-6 * max(1.0, float(u.abs().max()))
+
+    def matvec(v):
+        v = torch.as_tensor(np.asarray(v), dtype=u.dtype)
+        return _numpy((f0 - force(u + h * v)) / h)
+
+    return matvec
+
+
+def spd_factor(A) -> Factor:
+    """A factor (``.solve(numpy b)``) of a symmetric positive-definite scipy matrix."""
+    A = sp.csc_matrix(A, dtype=np.float64)
+    A.sum_duplicates()
+    A.sort_indices()
+    n = A.shape[0]
+    cols = np.repeat(np.arange(n), np.diff(A.indptr))
+    return Pattern(A.indices, cols, n).factorize(torch.from_numpy(A.data))
