@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from bayespd.assembly import Gram, numeric_values, union_pattern
-from bayespd.bonds import Bonds
+from bayespd.bonds import Bonds, partial_volume
 from bayespd.discretize import Particles
 from bayespd.influence import Constant, Influence
 from bayespd.surface import bond_factors
@@ -119,6 +119,18 @@ class _Material:
                              "at this horizon: increase delta or remove isolated particles")
         return w
 
+    @cached_property
+    def _lattice_family(self):
+        """Offsets of a complete family on the regular lattice of spacing h, up to delta_max
+        + h/2: (lengths, units, cell volume), the bulk reference of the surface correction."""
+        h, d = self.bonds.h, self.dim
+        k = np.arange(-math.ceil(self.bonds.delta_max / h) - 1, math.ceil(self.bonds.delta_max / h) + 2)
+        xi = h * np.stack(np.meshgrid(*[k] * d, indexing="ij"), axis=-1).reshape(-1, d)
+        r = np.linalg.norm(xi, axis=1)
+        keep = (r > 0) & (r < self.bonds.delta_max + h / 2)
+        cell = h**d * (self.particles.thickness if d == 2 else 1.0)
+        return torch.as_tensor(r[keep]), torch.as_tensor(xi[keep] / r[keep, None]), cell
+
     def _moduli(self, params: dict) -> dict:
         missing = set(self.param_names) - set(params)
         if missing:
@@ -197,10 +209,6 @@ class LPS(_Material):
             return K
         return 9 * K * G / (3 * K + 4 * G) if self.plane == "stress" else K + G / 3
 
-    def continuum_moduli(self, moduli: dict):
-        """(bulk, shear) of the classical continuum this model is calibrated to."""
-        return self.kappa(moduli["K"], moduli["G"]), moduli["G"]
-
     def _family_sum(self, per_end: torch.Tensor) -> torch.Tensor:
         return torch.zeros(self.particles.n, dtype=per_end.dtype).index_add(0, self._owner, per_end)
 
@@ -231,6 +239,17 @@ class LPS(_Material):
         sum_e2 = self._family_sum((factor * w * self.extension(u) ** 2)[self._end_bond] * self._end_volume)
         return 0.5 * (self.kappa(K, G) - c * G / d**2) * theta**2, 0.5 * c * G / m * sum_e2
 
+    def _bulk_energy_parts(self, moduli, params, delta, axis: int):
+        """The two parts of W for a unit uniaxial strain along ``axis`` at a particle with a
+        complete lattice family (where theta = 1 exactly), per particle's moduli."""
+        K, G = moduli["K"], moduli["G"]
+        d, c = self.dim, _C_DEV[self.dim]
+        r, n, cell = self._lattice_family
+        w = self.influence(r, delta, params) * partial_volume(r, delta, self.bonds.h)
+        m = (w * r**2).sum() * cell
+        sum_e2 = (w * (n[:, axis] ** 2 * r) ** 2).sum() * cell
+        return 0.5 * (self.kappa(K, G) - c * G / d**2), 0.5 * c * G / m * sum_e2
+
     def _stiffness_terms(self, moduli, params, delta, factor=1.0):
         K, G = moduli["K"], moduli["G"]
         d, c = self.dim, _C_DEV[self.dim]
@@ -260,13 +279,6 @@ class BondBased(_Material):
         coef = 3.0 if self.plane == "stress" else 24.0 / 5.0
         return coef * K / (math.pi * self.particles.thickness * self.influence.moment(2, delta, params))
 
-    def continuum_moduli(self, moduli: dict):
-        """(bulk, shear) of the classical continuum: nu is 1/3 (plane stress) or 1/4."""
-        K = moduli["K"]
-        if self.dim == 2 and self.plane == "stress":
-            return 0.75 * K, 0.375 * K
-        return (K if self.dim == 3 else 1.2 * K), 0.6 * K
-
     def _bond_stiffness(self, moduli, params, delta):
         c = self.micromodulus(moduli["K"], delta, params)
         c_b = 0.5 * (c[self._i] + c[self._j])
@@ -279,6 +291,14 @@ class BondBased(_Material):
         half = 0.25 * factor * self._bond_stiffness(moduli, params, delta) * self.extension(u) ** 2
         per_node = torch.zeros(self.particles.n, dtype=half.dtype).index_add(0, self._i, half).index_add(0, self._j, half)
         return torch.zeros_like(per_node), per_node / self.volume
+
+    def _bulk_energy_parts(self, moduli, params, delta, axis: int):
+        """(0, W) for a unit uniaxial strain along ``axis`` at a particle with a complete
+        lattice family: W = 1/4 c sum omega beta n_a^4 |xi| V."""
+        r, n, cell = self._lattice_family
+        w = self.influence(r, delta, params) * partial_volume(r, delta, self.bonds.h)
+        W = 0.25 * self.micromodulus(moduli["K"], delta, params) * (w * n[:, axis] ** 4 * r).sum() * cell
+        return torch.zeros_like(W), W
 
     def _stiffness_terms(self, moduli, params, delta, factor=1.0):
         return [(self._extension, self._extension_data, factor * self._bond_stiffness(moduli, params, delta))]

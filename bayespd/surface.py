@@ -20,25 +20,16 @@ from __future__ import annotations
 import torch
 
 
-def classical_energy_density(bulk, shear, eps: torch.Tensor):
-    """kappa/2 tr(eps)^2 + G dev(eps):dev(eps) in the material's dimension."""
-    d = eps.shape[0]
-    tr = torch.trace(eps)
-    dev = eps - tr / d * torch.eye(d)
-    return 0.5 * bulk * tr**2 + shear * (dev * dev).sum()
-
-
 def bond_factors(material, moduli: dict, params: dict, delta) -> torch.Tensor:
     """Correction factor G_b per bond (see the module docstring)."""
     x = torch.as_tensor(material.particles.x)
-    bulk, shear = material.continuum_moduli(moduli)
     i, j = material._i, material._j
     inverse_square = 0.0
     for a in range(material.dim):
         eps = torch.zeros(material.dim, material.dim)
         eps[a, a] = 1.0
         fixed, bond = material._energy_parts(moduli, params, delta, x @ eps.T)
-        g = (classical_energy_density(bulk, shear, eps) - fixed) / bond
+        g = (sum(material._bulk_energy_parts(moduli, params, delta, a)) - fixed) / bond
         if not bool(torch.all(torch.isfinite(g) & (g > 0))):
             raise ValueError("surface correction failed: a particle's family stores no energy "
                              f"under uniaxial strain along axis {a} (an isolated particle or a "

@@ -46,17 +46,21 @@ def test_boundary_layer_error_shrinks(material):
 
 
 def test_correction_is_one_in_the_bulk_and_differentiable():
-    """Interior bonds of a full family keep a factor within the lattice's own anisotropy of
-    1 (the bulk stays calibrated); the corrected solve passes gradcheck in K, G and delta."""
+    """Bonds whose two ends have complete families keep the factor 1 exactly (the bulk is
+    referred to its own lattice, so its calibration is untouched), for both materials and a
+    non-constant influence function; the corrected solve passes gradcheck in K, G and delta."""
     from bayespd.surface import bond_factors
 
     p = bp.grid_2d(20.0, 20.0, 1.0)
-    mat = bp.LPS(p, bp.find_bonds(p, 3.0), surface_correction=True)
+    bonds = bp.find_bonds(p, 3.0)
     K, G = bp.moduli_from_young(E, NU)
-    factor = bond_factors(mat, mat._moduli({"K": K, "G": G}), {}, 3.0)
-    both_inner = np.all((p.x > 7.0) & (p.x < 13.0), axis=1)
-    inner = both_inner[mat.bonds.i] & both_inner[mat.bonds.j]
-    assert float((factor[torch.as_tensor(inner)] - 1).abs().max()) < 0.05
+    complete = np.all((p.x > 3.5) & (p.x < 16.5), axis=1)
+    inner = torch.as_tensor(complete[bonds.i] & complete[bonds.j])
+    for mat, moduli in [(bp.LPS(p, bonds, influence=bp.Conical()), {"K": K, "G": G}),
+                        (bp.BondBased(p, bonds), {"K": K})]:
+        factor = bond_factors(mat, mat._moduli(moduli), {}, 2.7)
+        assert float((factor[inner] - 1).abs().max()) < 1e-12
+        assert float((factor[~inner] - 1).abs().max()) > 0.05
 
     p = bp.grid_2d(7.0, 5.0, 1.0)
     mat = bp.LPS(p, bp.find_bonds(p, 2.5), surface_correction=True)

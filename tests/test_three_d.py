@@ -4,9 +4,15 @@ import pytest
 import torch
 
 import bayespd as bp
-from bayespd.surface import classical_energy_density
 
 K3, G3 = bp.moduli_from_young(4000.0, 0.3)
+
+
+def classical_energy_density(K, G, eps):
+    """K/2 tr(eps)^2 + G dev(eps):dev(eps) in 3D."""
+    tr = torch.trace(eps)
+    dev = eps - tr / 3 * torch.eye(3)
+    return 0.5 * K * tr**2 + G * (dev * dev).sum()
 
 
 def inside(p, depth):
