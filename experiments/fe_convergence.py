@@ -166,7 +166,7 @@ def main(quick: bool):
         "cantilever_fe_self_change": target(cant_fe["self_change"], 1e-4),
         "beam_order_vs_lattice_fe_m3": target(observed["beam_m3"]["lattice"]["least_squares"], 0.8, below=False),
         "cantilever_order_surface_corrected_m2": target(
-            observed["cantilever_m2_surface"]["iso"]["least_squares"], 0.8, below=False),
+            observed["cantilever_m2_surface"]["lattice"]["least_squares"], 0.8, below=False),
         "cantilever_error_finest_surface_corrected": target(cant_sc[-1]["errors"]["iso"], 0.03),
         "wall_time_s": target(wall, 300.0),
     }
@@ -192,7 +192,11 @@ def main(quick: bool):
                   "the part that vanishes with delta. Plain LPS near a free surface is stiffer "
                   "along it (truncated families): in the slender cantilever this first-order "
                   "term is large at the delta/depth reachable in 3D, so plain LPS is "
-                  "pre-asymptotic there; the surface-corrected LPS removes it."),
+                  "pre-asymptotic there; the surface-corrected LPS removes it and converges "
+                  "to the lattice peer at about first order or better. In the deep 2D beam the "
+                  "correction does not help (2.3 % against 1.1 % at h = 0.5, m = 3): there the "
+                  "free-surface layer is thin relative to the section and the energy-based "
+                  "factors, exact only for uniaxial probes, over-correct the bending field."),
     }
     write_metrics("fe_convergence", metrics)
     print("\norders (least squares):")

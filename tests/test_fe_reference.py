@@ -110,10 +110,12 @@ def test_beam_first_order_in_delta_at_fixed_m():
 def test_cantilever_3d_converges():
     """3D LPS, m = 2, h = 1 and 2/3 mm, against the graded Q2 hex peer (about 2 min).
 
-    The FE peer changes by 8.7e-5 from 3 to 4 grading levels. Surface-corrected LPS:
-    errors 0.054 and 0.019, order 2.6 (theory: at least 1). Plain LPS is stiffer along free
-    surfaces (an O(delta) term with a large constant in a slender section): against the
-    lattice peer 0.096 and 0.087, decreasing but pre-asymptotic at these delta / depth."""
+    The FE peer changes by 8.7e-5 from 3 to 4 grading levels. Surface-corrected LPS against
+    the lattice peer (the limit at fixed m): errors 0.073 and 0.036, order 1.8 (theory: at
+    least 1); against the isotropic peer 0.028 and 0.017 (floor: the 2.7 % lattice
+    anisotropy at m = 2). Plain LPS is stiffer along free surfaces (an O(delta) term with a
+    large constant in a slender section): against the lattice peer 0.096 and 0.087,
+    decreasing but pre-asymptotic at these delta / depth."""
     K, G = cantilever.params(1.0)["K"], cantilever.params(1.0)["G"]
     g = bp.grid_3d(cantilever.LENGTH, cantilever.WIDTH, cantilever.DEPTH, 2 / 3)
     points = g.x[cantilever.away_mask(g.x, MARGIN)]
@@ -123,8 +125,8 @@ def test_cantilever_3d_converges():
     lattice = cantilever.fe_solution(grading=3, stiffness=lattice_stiffness(2, K, G, dim=3))
     refs = {"iso": iso, "lattice": lattice}
     corrected = [pd_versus_fe(cantilever, h, 2, refs, MARGIN, surface_correction=True) for h in (1.0, 2 / 3)]
-    p = observed_order([r["delta"] for r in corrected], [r["errors"]["iso"] for r in corrected])
+    p = observed_order([r["delta"] for r in corrected], [r["errors"]["lattice"] for r in corrected])
     assert p > 1.0
-    assert corrected[-1]["errors"]["iso"] < 0.025
+    assert corrected[-1]["errors"]["lattice"] < 0.045 and corrected[-1]["errors"]["iso"] < 0.025
     plain = [pd_versus_fe(cantilever, h, 2, refs, MARGIN)["errors"]["lattice"] for h in (1.0, 2 / 3)]
     assert plain[1] < plain[0] < 0.11
