@@ -1,0 +1,159 @@
+"""Stochastic fracture: overdamped Langevin dynamics (seed 002 eq 4) of a ``LoadedBody`` with
+the exact bond force, a damage law and a displacement-controlled ramp,
+
+    dU = -eta^-1 C grad V(U; mu, lambda(t)) dt + sqrt(2 C) dB,
+
+V of eq 3 on the free dofs (the moving Dirichlet layers enter through f_int), mu from the damage
+law (critical stretch or smoothed step, irreversible; or the damage ODE, which uses dt).
+
+Step n (lambda_n from the ramp): one step of ``Langevin``'s linearly implicit theta-scheme with
+operator A = T + eps I, the tangent of ``quasistatic`` (bond-based: the Hessian with tensile
+geometric stiffness; LPS: the damaged linearised stiffness) taken when the damage state last
+changed and refactorised only when an intact fraction changes (by more than ``refactor_tol``),
+then the damage update with the new stretch. With ``hold`` the ramp waits while bonds break:
+lambda advances only after a step in which no bond broke, the stochastic counterpart of seed
+004 §5.2's re-solve until no new bond breaks.
+
+Deterministic limit: with C = sigma^2 I and the mobility M = sigma^2 / eta fixed, theta = 1,
+each step is (I + a A) U' = U + a (f(U) + A U) + sqrt(2 dt) sigma xi, a = M dt; for
+a lambda_min(A) >> 1 this is one Newton step (lagged tangent) of ``quasistatic.equilibrium``
+plus the random force sqrt(2 / dt) sigma / M xi, which vanishes with sigma: the run then
+follows the quasi-static path (tested). Pieces that come loose are handled as in ``quasistatic``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from bayespd.damage import crack_length, crack_path, damage_index
+from bayespd.solvers.dynamics import NumericalInstabilityError
+from bayespd.solvers.langevin import Langevin
+from bayespd.solvers.noise import Covariance
+from bayespd.solvers.quasistatic import LoadedBody
+
+
+@dataclass
+class Realisation:
+    """One run: per step ``t``, ``load_factor``, ``reaction`` (steps, dim) on the loaded
+    particles, ``broken`` bond count and ``crack_length`` (of ``crack_path`` of phi); at the
+    end ``phi`` (N,), the crack ``path`` (k, dim), ``u`` (N, dim) and ``intact``; ``seed``."""
+
+    t: np.ndarray
+    load_factor: np.ndarray
+    reaction: np.ndarray
+    broken: np.ndarray
+    crack_length: np.ndarray
+    phi: np.ndarray
+    path: np.ndarray
+    u: torch.Tensor
+    intact: torch.Tensor
+    seed: int | None
+
+    @property
+    def peak(self) -> int:
+        """Index of the step with the largest reaction |R| (under strong noise the reaction
+        fluctuates, and its peak overstates the failure load)."""
+        return int(np.argmax(np.linalg.norm(self.reaction, axis=1)))
+
+    @property
+    def first_failure(self) -> int | None:
+        """Index of the first step that ends with a broken bond (None: none broke)."""
+        k = np.flatnonzero(self.broken > 0)
+        return int(k[0]) if len(k) else None
+
+
+class StochasticFracture:
+    """Seed 002 eq 4 with damage for ``body`` (a ``quasistatic.LoadedBody``): ``damage`` law,
+    noise ``covariance`` C on the body's free dofs (``noise.white_noise`` or
+    ``karhunen_loeve(..., dofs=body.constraints.free_dofs)``), temperature ``eta``, and the
+    theta of the scheme (1: linearly implicit Euler, robust for the nonlinear force)."""
+
+    def __init__(self, body: LoadedBody, damage, covariance: Covariance, eta: float, theta: float = 1.0):
+        n_free = len(body.constraints.free_dofs)
+        if covariance.n != n_free:
+            raise ValueError(f"the covariance must live on the {n_free} free dofs of the body "
+                             "(pass dofs=body.constraints.free_dofs to karhunen_loeve)")
+        if not 0.5 <= theta <= 1:
+            raise ValueError("theta must lie in [1/2, 1]: the operator is needed for stability")
+        self.body, self.damage, self.C, self.eta, self.theta = body, damage, covariance, eta, theta
+
+    def run(self, load_factors, dt: float, seed, hold: bool = True, max_steps: int | None = None,
+            path_threshold: float = 0.4, refactor_tol: float = 1e-2) -> Realisation:
+        """March through ``load_factors`` (one per step; with ``hold`` a step that breaks a bond
+        (intact fraction crossing 1/2) is repeated at the same factor, up to ``max_steps``
+        steps in all, default 10 per factor). The operator is refactorised when an intact
+        fraction has moved by more than ``refactor_tol`` since the last factorisation (the
+        sharp law: whenever a bond breaks); a stale operator is stiffer than the force, which
+        keeps the scheme stable. ``seed``: an int or a ``torch.Generator``; the same seed
+        reproduces the run bit for bit. Raises NumericalInstabilityError on a blow-up."""
+        body, law = self.body, self.damage
+        lams = np.asarray(load_factors, dtype=float)
+        max_steps = max_steps or 10 * len(lams)
+        gen = seed if isinstance(seed, torch.Generator) else torch.Generator().manual_seed(int(seed))
+        state = law.init(body.n_bonds)
+        intact = factored = law.intact(state)
+        u = torch.zeros(body.particles.n, body.particles.dim)
+        step = self._stepper(intact, u)
+        rec = {k: [] for k in ("t", "lam", "reac", "broken", "length")}
+        k = n = 0
+        length = 0.0
+        while k < len(lams) and n < max_steps:
+            n += 1
+            u = step(body.move(u, lams[k]), lams[k], intact, dt, gen)
+            if not bool(torch.isfinite(u).all()):
+                raise NumericalInstabilityError(
+                    f"the stochastic fracture run blew up at step {n} (load factor {lams[k]:g}): "
+                    "reduce dt, or the noise (eta), or give the body eps > 0")
+            state = law.update(state, body.kinematics.stretch(u), dt)
+            intact, before = law.intact(state), intact
+            broke = not torch.equal(intact < 0.5, before < 0.5)
+            if float((intact - factored).abs().max()) > refactor_tol:
+                factored = intact
+                step = self._stepper(intact, u)
+            if broke:
+                phi = damage_index(body.particles, body.bonds, intact)
+                length = crack_length(crack_path(body.particles, phi, path_threshold))
+            rec["t"].append(n * dt)
+            rec["lam"].append(lams[k])
+            rec["reac"].append(body.reaction(u, intact).numpy())
+            rec["broken"].append(int((intact < 0.5).sum()))
+            rec["length"].append(length)
+            k += not (hold and broke)
+        phi = damage_index(body.particles, body.bonds, intact)
+        return Realisation(np.asarray(rec["t"]), np.asarray(rec["lam"]), np.asarray(rec["reac"]),
+                           np.asarray(rec["broken"]), np.asarray(rec["length"]), phi.numpy(),
+                           crack_path(body.particles, phi, path_threshold), u, intact,
+                           None if isinstance(seed, torch.Generator) else int(seed))
+
+    def _stepper(self, intact, u):
+        """step(u, lam, intact, dt, gen) -> u: one theta-step with the force at the given
+        intact fractions and the operator A = T + eps I at (this ``intact``, u), factorised
+        once (``LoadedBody.operator``)."""
+        body = self.body
+        active = body.active(intact)
+        if len(active) == 0:  # everything came loose: nothing left to move
+            return lambda u, *_: u
+        idx = torch.as_tensor(active)
+        C = self.C
+        if len(active) < C.n:  # restrict C to the dofs still solved for
+            pos = np.searchsorted(body.constraints.free_dofs, active)
+            C = Covariance(C.d[pos], None if C.G is None else C.G[pos])
+        current = {}
+
+        def force(U):
+            u = current["u"].clone()
+            u.view(-1)[idx] = U
+            return body.residual(u, current["lam"], current["intact"]).view(-1)[idx]
+
+        langevin = Langevin(force, C, self.eta, operator=body.operator(intact, active, u))
+
+        def step(u, lam, intact_now, dt, gen):
+            current.update(u=u, lam=lam, intact=intact_now)
+            U = langevin.run(u.view(-1)[idx], dt, 1, theta=self.theta, generator=gen).final
+            out = u.clone()
+            out.view(-1)[idx] = U
+            return out
+
+        return step

@@ -1,0 +1,338 @@
+"""Quasi-static loading with bond breaking (seed 004 §5.2): at each load step solve the
+equilibrium, update the damage, and re-solve at the same load until no new bond breaks.
+
+A load factor lambda scales every Dirichlet value and every load of a ``LoadedBody``
+(displacement control: a layer moved by lambda times its value; force control: loads times
+lambda). Equilibrium is the stationary point of the potential of seed 002 eq 3 with the exact
+bond kinematics of ``bayespd.nonlinear`` at the current intact fractions mu:
+
+    r(u) = f_int(u; mu) + lambda p - eps u = 0   on the free dofs.
+
+Solver: Newton, u <- u + (T + eps I)^-1 r. Bond-based: T is the exact Hessian of the bond
+energy at u, k mu [n n^T + (e/r) (I - n n^T)] per bond (n = y/|y|), with the geometric part
+e/r kept only in tension (e > 0), so T is positive semi-definite and the step a descent
+direction; this keeps a particle or fragment that hangs on its last bonds stable (the
+linearised stiffness gives it no transverse stiffness, and a Newton iteration with it stalls
+or diverges there). T is refactorised only when the iteration slows down (``equilibrium``).
+LPS: T is the linearised stiffness of the damaged body (broken bonds removed; the Hessian at
+u = 0), factorised once per damage state: modified Newton, contracting the error by
+O(max stretch) per iteration away from hanging pieces. A mechanism that is still attached
+(T singular) gets a small diagonal shift (``LoadedBody.tangent``).
+
+Detached pieces: with eps = 0, a piece of the intact-bond graph that holds no Dirichlet
+particle (an isolated particle, a fragment) has its dofs dropped from the solve: it keeps the
+displacement it had when it came loose, and T stays positive definite. With eps > 0 nothing
+is dropped: the confinement of eq 3 holds such pieces. Under force control a loaded piece
+that comes loose cannot carry its load: the run stops there (``separated``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import scipy.sparse as sp
+import torch
+from scipy.sparse.csgraph import connected_components
+
+from bayespd.assembly import numeric_values
+from bayespd.boundary import Constraints
+from bayespd.damage import DamageODE, damage_index
+from bayespd.materials import _C_DEV, BondBased
+from bayespd.nonlinear import M_FLOOR, NonlinearBonds
+from bayespd.sparse import ConvergenceError, NotPositiveDefiniteError
+
+CONNECTED = 1e-6  # bonds with a smaller intact fraction no longer hold a piece in place
+MECHANISM_SHIFT = 1e-8  # relative diagonal shift of a singular tangent (see LoadedBody.tangent)
+
+
+def lps_damaged_terms(material, params: dict, delta, intact: torch.Tensor):
+    """Gram terms of the linearised LPS stiffness at intact fractions mu: the Hessian at u = 0
+    of the LPS energy in ``bayespd.nonlinear`` (bond weights w -> mu w, m floored as there)."""
+    moduli = material._moduli(params)
+    factor = material._bond_correction(moduli, params, delta)
+    K, G = moduli["K"], moduli["G"]
+    d, cG = material.dim, _C_DEV[material.dim]
+    w0 = material.bond_weight(params, delta)
+    w, L, end = w0 * intact, material.length, material._end_bond
+    m = torch.maximum(material._family_sum(w[end] * L[end] ** 2 * material._end_volume),
+                      M_FLOOR * material.weighted_volume(w0))
+    V, i, j = material.volume, material._i, material._j
+    s = V * (material.kappa(K, G) - cG * G / d**2)
+    k_b = factor * cG * w * V[i] * V[j] * (G[i] / m[i] + G[j] / m[j])
+    g = material._dilatation_vectors(w, m)
+    return [(material._extension, material._extension_data, k_b), (material._dilatation, g.reshape(-1), s)]
+
+
+class LoadedBody:
+    """A ``BondBased`` or ``LPS`` material at (params, delta) under Dirichlet regions and loads
+    whose values are those at load factor 1, with confinement ``eps`` (seed 002 eq 3).
+
+    ``loaded``: the particles whose reaction and mean displacement are recorded (default:
+    the Dirichlet regions with a non-zero value, and the loaded regions).
+    """
+
+    def __init__(self, material, params: dict, delta, dirichlet, loads=(), eps: float = 0.0, loaded=None):
+        if not eps >= 0:
+            raise ValueError(f"the confinement eps must be >= 0, got {eps}")
+        p = material.particles
+        self.material, self.params, self.delta, self.eps = material, params, delta, float(eps)
+        self.particles, self.bonds = p, material.bonds
+        self.kinematics = NonlinearBonds(material)
+        self.forces = self.kinematics.at(params, delta)
+        self.constraints = Constraints(p, material.pattern, list(dirichlet))
+        self.load = sum((load.nodal(p) for load in loads), torch.zeros(p.n, p.dim))
+        if loaded is None:
+            loaded = np.zeros(p.n, dtype=bool)
+            for region in [bc for bc in dirichlet if any(v not in (None, 0) for v in bc.value)] + list(loads):
+                loaded |= region.mask
+        self.loaded = np.asarray(loaded, dtype=bool)
+        if not self.loaded.any():
+            raise ValueError("nothing is loaded: give a Dirichlet region a non-zero value, a Load, "
+                             "or pass loaded= (the particles whose reaction is recorded)")
+        self._fixed = self.constraints.fixed_particles
+        self._patterns = {}
+
+    @property
+    def n_bonds(self) -> int:
+        return self.bonds.n
+
+    def move(self, u: torch.Tensor, lam: float) -> torch.Tensor:
+        """u with its prescribed dofs set to lambda times their values (free dofs kept)."""
+        c = self.constraints
+        return c.embed(c.free(u)) + lam * c.prescribed
+
+    def internal(self, u: torch.Tensor, intact) -> torch.Tensor:
+        return self.forces.force(u, intact)
+
+    def residual(self, u: torch.Tensor, lam: float, intact) -> torch.Tensor:
+        """f_int + lambda p - eps u, shape (N, dim) (the prescribed dofs included)."""
+        return self.internal(u, intact) + lam * self.load - self.eps * u
+
+    def reaction(self, u: torch.Tensor, intact) -> torch.Tensor:
+        """Total force on the loaded particles from outside the body: -(f_int - eps u) summed
+        (the support force under displacement control, lambda p under force control)."""
+        f = self.internal(u, intact) - self.eps * u
+        return -f[torch.as_tensor(self.loaded)].sum(0)
+
+    def mean_displacement(self, u: torch.Tensor) -> torch.Tensor:
+        return u[torch.as_tensor(self.loaded)].mean(0)
+
+    def active(self, intact) -> np.ndarray:
+        """Flat indices of the dofs solved for: the free dofs, less those of pieces that hold
+        no Dirichlet particle when eps = 0 (see the module docstring)."""
+        free = self.constraints.free_dofs
+        if self.eps > 0:
+            return free
+        keep = np.asarray(torch.as_tensor(intact) > CONNECTED)
+        n = self.particles.n
+        graph = sp.coo_matrix((np.ones(int(keep.sum())), (self.bonds.i[keep], self.bonds.j[keep])), shape=(n, n))
+        label = connected_components(graph, directed=False)[1]
+        anchored = np.zeros(label.max() + 1, dtype=bool)
+        anchored[label[self._fixed]] = True
+        return free[anchored[label[free // self.particles.dim]]]
+
+    @property
+    def geometric(self) -> bool:
+        """True when the tangent depends on u (bond-based: the exact Hessian)."""
+        return isinstance(self.material, BondBased)
+
+    def operator(self, intact, active: np.ndarray, u: torch.Tensor | None = None) -> sp.csc_matrix:
+        """T + eps I on the ``active`` dofs (scipy CSC), T the tangent of the module docstring
+        at u (default u = 0, where both tangents are the damaged linearised stiffness)."""
+        sub, values = self._operator(intact, active, u)
+        return sub.matrix(values)
+
+    def tangent(self, intact, active: np.ndarray):
+        """u -> a factor of ``operator`` at u: for each u (bond-based) or once, on the first
+        call (LPS). CHOLMOD's analysis is kept per active set. A singular T (a mechanism that
+        is still attached: a fragment on a hinge, a particle on bonds without tension) gets
+        its diagonal shifted by MECHANISM_SHIFT times its mean: the Newton step along the
+        mechanism becomes large, and the bonds it stretches break in the next update."""
+        def factor(u):
+            sub, values = self._operator(intact, active, u)
+            try:
+                return sub.factorize(values)
+            except NotPositiveDefiniteError:  # a mechanism: shift the step, not the equilibrium
+                diag = self._restricted(active)[2]
+                values[diag] += MECHANISM_SHIFT * float(values[diag].mean())
+                return sub.factorize(values)
+
+        if self.geometric:
+            return factor
+        once = {}
+
+        def fixed(u):
+            if "factor" not in once:
+                once["factor"] = factor(None)
+            return once["factor"]
+
+        return fixed
+
+    def _operator(self, intact, active, u):
+        sub, entries, diag = self._restricted(active)
+        values = self._tangent(intact, u)[entries]
+        values[diag] += self.eps
+        return sub, torch.from_numpy(values)
+
+    def _tangent(self, intact, u) -> np.ndarray:
+        """Values of T on the material's pattern."""
+        intact = torch.as_tensor(intact)
+        if not self.geometric:
+            terms = lps_damaged_terms(self.material, self.params, self.delta, intact)
+            return numeric_values(self.material.pattern, terms).numpy().copy()
+        d = self.particles.dim
+        y, r = self.kinematics.deformed(torch.zeros(self.particles.n, d) if u is None else u)
+        n = (y / r[:, None]).numpy()
+        c = torch.clamp(1 - self.kinematics.length / r, min=0).numpy()[:, None, None]
+        k = np.broadcast_to((self.forces.k * intact).detach().numpy(), (self.n_bonds,))[:, None, None]
+        H = k * (c * np.eye(d) + (1 - c) * n[:, :, None] * n[:, None, :])
+        return np.bincount(self._blocks.reshape(-1), np.stack([H, H, -H, -H], 1).reshape(-1),
+                           minlength=self.material.pattern.nnz)
+
+    @cached_property
+    def _blocks(self) -> np.ndarray:
+        """Pattern positions (bonds, 4, d, d) of the blocks ii, jj, ij, ji of each bond."""
+        d, a = self.particles.dim, np.arange(self.particles.dim)
+        i, j = self.bonds.i, self.bonds.j
+
+        def block(p, q):
+            rows = np.broadcast_to(d * p[:, None, None] + a[:, None], (len(p), d, d))
+            cols = np.broadcast_to(d * q[:, None, None] + a[None, :], (len(p), d, d))
+            return self.material.pattern.position(rows.reshape(-1), cols.reshape(-1)).reshape(-1, d, d)
+
+        return np.stack([block(i, i), block(j, j), block(i, j), block(j, i)], 1)
+
+    def _restricted(self, active: np.ndarray):
+        key = active.tobytes()
+        if key not in self._patterns:
+            mask = np.zeros(self.material.pattern.n, dtype=bool)
+            mask[active] = True
+            sub, entries = self.material.pattern.restrict(mask)
+            k = np.arange(sub.n)
+            self._patterns = {key: (sub, entries, sub.position(k, k))}  # keep the latest only
+        return self._patterns[key]
+
+
+@dataclass
+class QuasiStaticResult:
+    """Per load step k: ``load_factors``, ``displacement`` and ``reaction`` (steps, dim) of
+    the loaded particles, ``broken`` bond count, ``damage`` index phi (steps, N),
+    ``iterations`` (Newton, summed over re-solves) and ``resolves`` (equilibria solved);
+    final ``u`` (N, dim), damage ``state`` and ``intact`` fractions. ``separated``: a loaded
+    piece came loose under force control and the run stopped after the last step listed."""
+
+    load_factors: np.ndarray
+    displacement: np.ndarray
+    reaction: np.ndarray
+    broken: np.ndarray
+    damage: np.ndarray
+    iterations: np.ndarray
+    resolves: np.ndarray
+    u: torch.Tensor
+    state: torch.Tensor | None
+    intact: torch.Tensor
+    separated: bool = False
+
+    @property
+    def first_failure(self) -> int | None:
+        """Index of the first step that ends with a broken bond (None: none broke)."""
+        k = np.flatnonzero(self.broken > 0)
+        return int(k[0]) if len(k) else None
+
+    @property
+    def peak(self) -> int:
+        """Index of the step with the largest reaction |R|."""
+        return int(np.argmax(np.linalg.norm(self.reaction, axis=1)))
+
+
+def equilibrium(body: LoadedBody, u: torch.Tensor, lam: float, intact, tangent, active,
+                rtol: float = 1e-10, max_iter: int = 50):
+    """Newton from u (prescribed dofs already at lambda), ``tangent(u)`` giving the factor of
+    T + eps I, taken at the first iteration and again whenever one reduced |r| less than 10x
+    (a lagged tangent: most solves factorise once); returns (u, iterations). Converged when
+    |r| <= rtol |f_int| (all dofs) or when the update falls below 1e-13 h: the extension
+    |y| - |xi| carries a rounding error of ~1e-16 |xi|, so at strains below ~1e-6 the residual
+    stalls above rtol while u is exact to rounding. Raises ConvergenceError."""
+    idx = torch.as_tensor(active)
+    u = u.clone()
+    flat = u.view(-1)
+    factor, previous = None, np.inf
+    for it in range(max_iter):
+        f = body.internal(u, intact)
+        r = (f + lam * body.load - body.eps * u).view(-1)[idx]
+        rn = float(r.norm())
+        if not np.isfinite(rn):
+            break
+        if rn <= rtol * float(f.norm()):
+            return u, it
+        if factor is None or rn > 0.1 * previous:
+            factor = tangent(u)
+        previous = rn
+        du = torch.from_numpy(np.asarray(factor.solve(r.numpy())))
+        flat[idx] += du
+        if float(du.abs().max()) <= 1e-13 * body.particles.h:
+            return u, it + 1
+    raise ConvergenceError(
+        f"the equilibrium at load factor {lam:g} did not converge in {max_iter} Newton "
+        f"iterations (residual {rn:.3g}): stretches far beyond s0, or a mechanism formed "
+        "(LPS: its tangent has no geometric stiffness); use smaller load steps, or eps > 0")
+
+
+def quasi_static(body: LoadedBody, load_factors, damage=None, rtol: float = 1e-10,
+                 max_iter: int = 50, damage_tol: float = 0.0) -> QuasiStaticResult:
+    """Step through ``load_factors`` (any sequence: loading, unloading, reloading); after each
+    equilibrium update the damage law (``CriticalStretch`` or ``SmoothStep``, irreversible)
+    with the stretch and re-solve until no intact fraction changes by more than
+    ``damage_tol`` (seed 004 §5.2; the sharp law stops exactly with 0, the smoothed step needs
+    a tolerance, e.g. 1e-6). ``damage=None``: nonlinear elasticity, no breaking."""
+    if isinstance(damage, DamageODE):
+        raise TypeError("the damage ODE is rate-dependent and quasi-static loading has no time: "
+                        "use bayespd.solvers.fracture (Langevin with a time step) for it")
+    p, nb = body.particles, body.n_bonds
+    state = damage.init(nb) if damage is not None else None
+    intact = damage.intact(state) if damage is not None else torch.ones(nb)
+    u = torch.zeros(p.n, p.dim)
+    active = body.active(intact)
+    tangent = body.tangent(intact, active)
+    rec = {k: [] for k in ("lam", "disp", "reac", "broken", "phi", "its", "solves")}
+    separated = False
+    for lam in np.asarray(load_factors, dtype=float):
+        u = body.move(u, lam)
+        its = solves = 0
+        while True:
+            u, n = equilibrium(body, u, lam, intact, tangent, active, rtol, max_iter)
+            its, solves = its + n, solves + 1
+            if damage is None:
+                break
+            state = damage.update(state, body.kinematics.stretch(u))
+            new = damage.intact(state)
+            changed = float((new - intact).abs().max()) > damage_tol
+            intact = new
+            if not changed:
+                break
+            active = body.active(intact)
+            separated = lam != 0 and bool(body.load.abs().sum(1)[_dropped(body, active)].any())
+            if separated:
+                break
+            tangent = body.tangent(intact, active)
+        rec["lam"].append(lam)
+        rec["disp"].append(body.mean_displacement(u).numpy())
+        rec["reac"].append(body.reaction(u, intact).numpy())
+        rec["broken"].append(int((intact < 0.5).sum()))
+        rec["phi"].append(damage_index(p, body.bonds, intact).numpy())
+        rec["its"].append(its)
+        rec["solves"].append(solves)
+        if separated:
+            break
+    return QuasiStaticResult(np.asarray(rec["lam"]), np.asarray(rec["disp"]), np.asarray(rec["reac"]),
+                             np.asarray(rec["broken"]), np.asarray(rec["phi"]), np.asarray(rec["its"]),
+                             np.asarray(rec["solves"]), u, state, intact, separated)
+
+
+def _dropped(body: LoadedBody, active: np.ndarray) -> np.ndarray:
+    """Mask of the particles with a free dof that is not solved for."""
+    mask = np.zeros(body.particles.n * body.particles.dim, dtype=bool)
+    mask[body.constraints.free_dofs] = True
+    mask[active] = False
+    return torch.as_tensor(mask.reshape(body.particles.n, -1).any(1))

@@ -1,0 +1,99 @@
+"""Stochastic fracture (seed 002 eq 4 with damage): the noise -> 0 limit is the quasi-static
+path, a seed reproduces its run bit for bit, large noise makes paths differ, and the
+rate-dependent damage ODE breaks a bond when its damage clock predicts."""
+import numpy as np
+import pytest
+import scipy.sparse.linalg as sla
+import torch
+
+import bayespd as bp
+from bayespd.damage import CriticalStretch, DamageODE
+from bayespd.solvers import karhunen_loeve, white_noise
+from bayespd.solvers.fracture import StochasticFracture
+from bayespd.solvers.quasistatic import LoadedBody, quasi_static
+
+SIDE, H, DELTA, S0 = 20.0, 1.0, 3.0, 0.01
+LAMS = np.linspace(0.02, 0.7, 35)  # top layer pulled by 0.2 lambda mm
+
+
+@pytest.fixture(scope="module")
+def plate():
+    """A 20 x 20 bond-based plate notched from the left edge to the centre, bottom clamped,
+    top pulled (mode I)."""
+    p = bp.grid_2d(SIDE, SIDE, H)
+    bonds = bp.precrack(p, bp.find_bonds(p, DELTA), [[0.0, SIDE / 2], [SIDE / 2, SIDE / 2]])
+    bcs = [bp.Dirichlet.layer(p, "bottom", DELTA), bp.Dirichlet.layer(p, "top", DELTA, (0.0, 0.2))]
+    return LoadedBody(bp.BondBased(p, bonds), {"K": 1000.0}, DELTA, bcs)
+
+
+@pytest.fixture(scope="module")
+def deterministic(plate):
+    return quasi_static(plate, LAMS, CriticalStretch(S0))
+
+
+def driver(body, sigma, mobility=1e3, noise=None):
+    """C = sigma^2 I (or ``noise``), eta = sigma^2 / mobility: the drift eta^-1 C grad V keeps
+    its rate as sigma changes, the noise scales with sigma."""
+    C = noise or white_noise(sigma, len(body.constraints.free_dofs))
+    return StochasticFracture(body, CriticalStretch(S0), C, eta=sigma**2 / mobility)
+
+
+def test_vanishing_noise_follows_the_quasi_static_path(plate, deterministic):
+    """sigma = 1e-6 at mobility M with M dt lambda_min(A) ~ 1e4 >> 1: each step is one Newton
+    step plus a random force of size sqrt(2/dt) sigma / M ~ 1e-9, so first failure and peak
+    load fall within one load step of the quasi-static run and the damage is the same."""
+    intact = torch.ones(plate.n_bonds)
+    lam_min = sla.eigsh(plate.operator(intact, plate.active(intact)), k=1, sigma=0, return_eigenvectors=False)[0]
+    assert 1e3 * lam_min > 1e4
+    run = driver(plate, 1e-6).run(LAMS, dt=1.0, seed=0)
+    qs = deterministic
+    assert abs(run.load_factor[run.first_failure] - LAMS[qs.first_failure]) <= LAMS[1] - LAMS[0] + 1e-12
+    assert abs(run.load_factor[run.peak] - LAMS[qs.peak]) <= LAMS[1] - LAMS[0] + 1e-12
+    assert np.array_equal(run.phi > 0.4, qs.damage[-1] > 0.4)
+    assert run.broken[-1] == qs.broken[-1]
+    assert np.abs(run.path[:, 1] - SIDE / 2).max() <= H  # the straight crack of mode I
+    assert run.crack_length[-1] >= SIDE / 2 - 2 * H  # through the ligament
+    assert np.all(np.diff(run.crack_length[run.broken > 0]) >= -2 * H)
+
+
+def test_a_seed_reproduces_its_run_and_noise_changes_the_path(plate):
+    """White noise large enough to deflect the crack: the same seed gives bit-identical
+    results, another seed a different damage field. Without hold the ramp advances every
+    step."""
+    lams = LAMS[::2]
+    frac = driver(plate, 100.0)
+    a, b, c = frac.run(lams, 1.0, seed=3), frac.run(lams, 1.0, seed=3), frac.run(lams, 1.0, seed=4)
+    assert torch.equal(a.u, b.u) and np.array_equal(a.phi, b.phi) and np.array_equal(a.path, b.path)
+    assert not np.array_equal(a.phi > 0.4, c.phi > 0.4)
+    free = frac.run(lams, 1.0, seed=torch.Generator().manual_seed(3), hold=False)
+    assert np.array_equal(free.load_factor, lams) and free.seed is None
+
+
+def test_correlated_noise_runs_and_is_checked(plate):
+    """Karhunen-Loeve noise on the free dofs (with a nugget, so C is positive definite and the
+    drift reaches every dof); a covariance on the wrong dofs is refused."""
+    free = plate.constraints.free_dofs
+    kl = karhunen_loeve(plate.particles.x, 1e-6, length=3.0, rank=20, nugget=1.0, dofs=free)
+    run = driver(plate, 1e-6, noise=kl).run(LAMS[::2], dt=1.0, seed=0)
+    assert run.broken[-1] > 0 and np.abs(run.path[:, 1] - SIDE / 2).max() <= H
+    with pytest.raises(ValueError, match="free dofs"):
+        StochasticFracture(plate, CriticalStretch(S0), white_noise(1.0, plate.particles.n * 2), 1.0)
+
+
+def test_damage_ode_breaks_when_its_clock_runs_out():
+    """Damage ODE of seed 002 §2.1 (logistic, lam = exp(-k s_c)): z = logit(alpha) falls by
+    tau = sum_n exp(k (s_n - s_c)) dt, so the most stretched bond of a bar (s_n = lambda_n
+    s_1 from the elastic solve, the others barely damaged) breaks at the first step with
+    tau > logit(alpha0). The driver (vanishing noise) breaks its first bond at that step."""
+    p = bp.grid_2d(20.0, 4.0, H)
+    bcs = [bp.Dirichlet.layer(p, "left", DELTA), bp.Dirichlet.layer(p, "right", DELTA, (0.1, 0.0))]
+    body = LoadedBody(bp.BondBased(p, bp.find_bonds(p, DELTA)), {"K": 1000.0}, DELTA, bcs)
+    s1 = float(body.kinematics.stretch(quasi_static(body, [1e-3]).u).max()) / 1e-3
+    k, s_c, alpha0 = 2000.0, 0.005, 0.999
+    lams = np.linspace(0.02, 1.0, 50)
+    tau = np.cumsum(np.exp(k * (lams * s1 - s_c)))
+    predicted = lams[np.argmax(tau > np.log(alpha0 / (1 - alpha0)))]
+    law = DamageODE(k=k, alpha0=alpha0, lam=np.exp(-k * s_c))
+    frac = StochasticFracture(body, law, white_noise(1e-6, len(body.constraints.free_dofs)), eta=1e-15)
+    run = frac.run(lams, dt=1.0, seed=0)
+    assert run.load_factor[run.first_failure] == pytest.approx(predicted, abs=1e-12)
