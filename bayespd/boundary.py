@@ -1,6 +1,8 @@
 """Volume-constrained Dirichlet layers, distributed loads, and reduction to free dofs."""
 from __future__ import annotations
 
+from functools import cached_property
+
 import numpy as np
 import torch
 
@@ -50,7 +52,7 @@ class Load:
 class Constraints:
     """Splits dofs into prescribed and free; K u = f becomes K_ff u_f = f_f - K_fc u_c."""
 
-    def __init__(self, particles: Particles, pattern: Pattern, dirichlet: list[Dirichlet]):
+    def __init__(self, particles: Particles, pattern: Pattern | None, dirichlet: list[Dirichlet]):
         n, dim = particles.n, particles.dim
         fixed = np.zeros((n, dim), dtype=bool)
         prescribed = np.zeros((n, dim))
@@ -65,15 +67,26 @@ class Constraints:
         self.fixed_particles = fixed.any(axis=1)
         self.prescribed = torch.as_tensor(prescribed)
         self.has_prescribed = bool(np.any(prescribed))
-        free = ~fixed.reshape(-1)
-        self.pattern, entries = pattern.restrict(free)
-        self._entries = torch.as_tensor(entries)
+        self.free_mask = free = ~fixed.reshape(-1)
+        self._full_pattern = pattern  # None: a matrix-free solver needs no pattern
         self.free_dofs = np.flatnonzero(free)  # flat dof indices d*i + a of the free dofs
         self._free_idx = torch.as_tensor(self.free_dofs)
 
+    @cached_property
+    def _restricted(self):
+        if self._full_pattern is None:
+            raise ValueError("these constraints were built without a pattern (matrix-free solver)")
+        sub, entries = self._full_pattern.restrict(self.free_mask)
+        return sub, torch.as_tensor(entries)
+
+    @property
+    def pattern(self) -> Pattern:
+        """K_ff's pattern (built on first use)."""
+        return self._restricted[0]
+
     def free_values(self, values: torch.Tensor) -> torch.Tensor:
         """Values of K_ff from values of K on the full pattern."""
-        return values[self._entries]
+        return values[self._restricted[1]]
 
     def free(self, x: torch.Tensor) -> torch.Tensor:
         """The free dofs of a nodal field (N, dim)."""

@@ -8,6 +8,7 @@ import scipy.sparse as sp
 import torch
 from scipy.sparse.csgraph import connected_components
 
+from bayespd.stiffness_solver import Assembly
 from bayespd.boundary import Constraints, Dirichlet, Load
 from bayespd.observe import LinearObservation
 from bayespd.sparse import solve_form
@@ -22,7 +23,8 @@ class Scene:
     """
 
     def __init__(self, material, dirichlet: list[Dirichlet], loads: list[Load],
-                 observation: LinearObservation | None = None):
+                 observation: LinearObservation | None = None, solver: str = "direct",
+                 precondition_radius: float | None = 1.5, rtol: float = 1e-10):
         p = material.particles
         if not dirichlet:
             raise ValueError("a static scene needs at least one Dirichlet region")
@@ -35,7 +37,18 @@ class Scene:
                               "a layer thinner than the horizon under-constrains the nonlocal "
                               "boundary; constrain a layer at least one horizon thick", stacklevel=2)
         self.material, self.particles, self.observation = material, p, observation
-        self.constraints = Constraints(p, material.pattern, dirichlet)
+        if solver not in ("direct", "pcg"):
+            raise ValueError("solver must be 'direct' (CHOLMOD/SuperLU) or 'pcg' (matrix-free)")
+        self.solver, self.rtol = solver, rtol
+        direct = solver == "direct"
+        self.constraints = Constraints(p, material.pattern if direct else None, dirichlet)
+        # PCG: K is never assembled; the preconditioner keeps the bonds with
+        # |xi| <= precondition_radius * h (None: all bonds)
+        self._assembly = None if direct else Assembly(material._grams(), self.constraints.free_mask)
+        self._precondition_rows = None
+        if not direct and precondition_radius is not None:
+            short = material.bonds.length <= precondition_radius * p.h * (1 + 1e-9)
+            self._precondition_rows = {material._grams()[0]: short}
         _refuse_floating_pieces(material.bonds, self.constraints.fixed_particles)
         self.force = sum(load.nodal(p) for load in loads)
         self.param_names = (*material.param_names, "delta")
@@ -59,7 +72,11 @@ class Scene:
         p = self._params(params)
         c, m = self.constraints, self.material
         with torch.no_grad():
-            factor = c.pattern.factorize(c.free_values(m.numeric_stiffness(p, p["delta"])))
+            if self.solver == "direct":
+                factor = c.pattern.factorize(c.free_values(m.numeric_stiffness(p, p["delta"])))
+            else:
+                factor = self._assembly.factorize(m._terms(p, p["delta"]), "pcg", rtol=self.rtol,
+                                                  precondition_rows=self._precondition_rows)
         f = self.force * p["load"] if "load" in p else self.force
         rhs = c.free(f)
         if c.has_prescribed:  # f_f - K_fc u_c, K u_c as the gradient of the form

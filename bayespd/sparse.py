@@ -13,11 +13,23 @@ so second derivatives and Hessian-vector products exist.
 
 Backends: CHOLMOD (scikit-sparse) when importable, analysing the pattern once and
 refactorising per value; else scipy's SuperLU in symmetric mode with an AMD ordering.
+``PCGFactor`` is a preconditioned conjugate-gradient "factor" with the same ``solve``
+interface, for problems too large to factorise (see ``bayespd.stiffness_solver.Assembly``); it raises
+``ConvergenceError`` when it does not reach its tolerance.
+
+Threads: CHOLMOD's supernodal factorisation runs in OpenBLAS; ``blas_threads(n)`` sets how
+many threads that OpenBLAS uses (``FACTOR_THREADS`` while factorising). Triangular solves and
+the PCG loop run with one thread: a second OpenBLAS thread spinning between calls only slows
+the single-threaded scipy code in between on a 2-core machine.
 """
 from __future__ import annotations
 
+import contextlib
+import ctypes
+import os
 import warnings
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -34,6 +46,45 @@ class NotPositiveDefiniteError(RuntimeError):
     """The stiffness is not positive definite (unstable material, too few constraints, ...)."""
 
 
+class ConvergenceError(RuntimeError):
+    """An iterative solve did not reach its tolerance."""
+
+
+# CHOLMOD settings: fill-reducing ordering ("default" tries AMD and METIS and keeps the better;
+# "amd" analyses much faster on large 2D problems but fills more; "metis", "nesdis", "best")
+# and OpenBLAS threads while factorising (None: all cores).
+CHOLMOD_ORDERING = "default"
+FACTOR_THREADS: int | None = None
+
+
+def _load_openblas():
+    for name in ("libopenblas.so.0", "libopenblas.so", "libopenblasp-r0.3.21.so"):
+        try:
+            lib = ctypes.CDLL(name)
+            lib.openblas_set_num_threads, lib.openblas_get_num_threads  # noqa: B018
+            return lib
+        except (OSError, AttributeError):
+            continue
+    return None
+
+
+_OPENBLAS = _load_openblas() if cholmod is not None else None
+
+
+@contextlib.contextmanager
+def blas_threads(n: int | None):
+    """Run the block with ``n`` OpenBLAS threads (CHOLMOD's BLAS; None: all cores)."""
+    if _OPENBLAS is None:
+        yield
+        return
+    before = _OPENBLAS.openblas_get_num_threads()
+    _OPENBLAS.openblas_set_num_threads(int(n or os.cpu_count() or 1))
+    try:
+        yield
+    finally:
+        _OPENBLAS.openblas_set_num_threads(before)
+
+
 @dataclass(eq=False)
 class Pattern:
     """A fixed sparsity pattern of an n x n matrix, entries in CSC order (column-major).
@@ -47,9 +98,16 @@ class Pattern:
     _symbolic: object = field(default=None, repr=False)
 
     def __post_init__(self):
-        order = np.lexsort((self.rows, self.cols))
-        if not np.array_equal(order, np.arange(len(order))):
-            raise ValueError("pattern entries must be sorted by (col, row)")
+        self.rows = np.asarray(self.rows, dtype=np.int64)
+        self.cols = np.asarray(self.cols, dtype=np.int64)
+        self._strict = True  # no duplicate entries
+        step = 1 << 20  # O(nnz) check in chunks (no sort, no large temporaries)
+        for k in range(0, max(0, len(self.rows) - 1), step):
+            dc = np.diff(self.cols[k:k + step + 1])
+            dr = np.diff(self.rows[k:k + step + 1])
+            if np.any(dc < 0) or np.any((dc == 0) & (dr < 0)):
+                raise ValueError("pattern entries must be sorted by (col, row)")
+            self._strict = self._strict and not np.any((dc == 0) & (dr == 0))
         self.indptr = np.searchsorted(self.cols, np.arange(self.n + 1)).astype(np.int64)
         self.rows_t = torch.as_tensor(self.rows)
         self.cols_t = torch.as_tensor(self.cols)
@@ -58,18 +116,32 @@ class Pattern:
     def nnz(self) -> int:
         return len(self.rows)
 
+    @cached_property
+    def _keys(self) -> np.ndarray:
+        return self.cols * self.n + self.rows
+
     def position(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """Entry index of each (row, col); every pair must be in the pattern."""
-        keys = self.cols * self.n + self.rows
+        keys = self._keys
         query = np.asarray(cols, dtype=np.int64) * self.n + np.asarray(rows, dtype=np.int64)
         idx = np.searchsorted(keys, query)
-        if not (np.all(idx < len(keys)) and np.array_equal(keys[idx], query)):
+        if not (np.all(idx < len(keys)) and np.array_equal(keys[np.minimum(idx, len(keys) - 1)], query)):
             raise KeyError("an entry is not in the pattern")
         return idx
 
+    @cached_property
+    def _csc_index(self):
+        """(indices, indptr) in the narrowest dtype scipy accepts, converted once."""
+        dtype = np.int32 if max(self.n, self.nnz) < 2**31 - 1 else np.int64
+        return self.rows.astype(dtype), self.indptr.astype(dtype)
+
     def matrix(self, values: torch.Tensor) -> sp.csc_matrix:
-        v = values.detach().cpu().numpy()
-        return sp.csc_matrix((v, self.rows, self.indptr), shape=(self.n, self.n))
+        v = values.detach().cpu().numpy() if isinstance(values, torch.Tensor) else np.asarray(values)
+        indices, indptr = self._csc_index
+        A = sp.csc_matrix((v, indices, indptr), shape=(self.n, self.n), copy=False)
+        if self._strict:
+            A.has_sorted_indices = True
+        return A
 
     def matvec(self, values: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
         """K x as a differentiable gather/scatter (x may be (n,) or (n, k))."""
@@ -83,13 +155,18 @@ class Pattern:
         sub = Pattern(index[self.rows[entries]], index[self.cols[entries]], int(keep.sum()))
         return sub, np.flatnonzero(entries)
 
-    def factorize(self, values: torch.Tensor, backend: str | None = None) -> "Factor":
+    def factorize(self, values: torch.Tensor, backend: str | None = None,
+                  ordering: str | None = None) -> "Factor":
+        """A factor of the matrix with these values (``ordering``: CHOLMOD's fill-reducing
+        ordering for the first factorisation of this pattern, default CHOLMOD_ORDERING)."""
         backend = backend or default_backend()
         A = self.matrix(values)
         if not np.all(np.isfinite(A.data)):
             raise NotPositiveDefiniteError("stiffness has non-finite entries (check parameters)")
         if backend == "cholmod":
-            return _cholmod_factor(self, A)
+            if cholmod is None:
+                raise ValueError("backend 'cholmod' needs scikit-sparse: install the 'fast' extra")
+            return _cholmod_factor(self, A, ordering or CHOLMOD_ORDERING)
         if backend == "splu":
             return _splu_factor(A)
         raise ValueError(f"unknown backend {backend!r}: use 'cholmod' or 'splu'")
@@ -106,14 +183,86 @@ class Factor:
         self.solve = solve_fn
 
 
-def _cholmod_factor(pattern: Pattern, A) -> Factor:
+def _cholmod_factor(pattern: Pattern, A, ordering: str = "default") -> Factor:
     try:
-        if pattern._symbolic is None:
-            pattern._symbolic = cholmod.analyze(A, mode="supernodal")
-        f = pattern._symbolic.cholesky(A)
+        with blas_threads(FACTOR_THREADS):
+            if pattern._symbolic is None:
+                pattern._symbolic = cholmod.analyze(A, mode="supernodal", ordering_method=ordering)
+            f = pattern._symbolic.cholesky(A)
     except cholmod.CholmodNotPositiveDefiniteError as e:
         raise NotPositiveDefiniteError(f"stiffness is not positive definite ({e})") from None
-    return Factor(f.solve_A)
+    _check_pivots(f.D(), A.diagonal()[f.P()])
+
+    def solve(b):
+        with blas_threads(1):
+            return f.solve_A(b)
+
+    factor = Factor(solve)
+    factor.cholmod = f
+    return factor
+
+
+def _dot(a: np.ndarray, b: np.ndarray):
+    """Column-wise dot products without BLAS (numpy's own OpenBLAS would start threads)."""
+    return np.add.reduce(a * b, axis=0)
+
+
+class PCGFactor(Factor):
+    """K^-1 b by preconditioned conjugate gradients: ``matvec(x)`` is K x and
+    ``precondition(r)`` applies an SPD approximation of K^-1 (both for numpy (n,) or (n, k)).
+
+    Converged when ||b - K x|| <= rtol ||b|| for every column; otherwise ``ConvergenceError``.
+    A non-positive curvature p^T K p <= 0 raises ``NotPositiveDefiniteError``.
+    ``iterations`` holds the iteration count of the last solve.
+    """
+
+    def __init__(self, matvec, precondition, n: int, rtol: float = 1e-10, maxiter: int | None = None):
+        self.matvec, self.precondition, self.n = matvec, precondition, n
+        self.rtol, self.maxiter = rtol, maxiter or max(200, int(4 * np.sqrt(n)))
+        self.iterations = 0
+        super().__init__(self._solve)
+
+    def _solve(self, b):
+        b = np.asarray(b, dtype=np.float64)
+        if b.shape[0] != self.n:
+            raise ValueError(f"right-hand side must have {self.n} rows, got {b.shape[0]}")
+        with blas_threads(1):
+            return self._pcg(b)
+
+    def _pcg(self, b):
+        x = np.zeros_like(b)
+        norm_b = np.sqrt(_dot(b, b))
+        if np.all(norm_b == 0):
+            return x
+        target = self.rtol * norm_b
+        r = b.copy()
+        z = self.precondition(r)
+        p = z.copy()
+        rz = _dot(r, z)
+        for it in range(1, self.maxiter + 1):
+            Kp = self.matvec(p)
+            curvature = _dot(p, Kp)
+            if np.any(curvature <= 0) or not np.all(np.isfinite(curvature)):
+                raise NotPositiveDefiniteError(
+                    "the operator is not positive definite (p^T K p <= 0 in conjugate "
+                    "gradients): check moduli, horizon and constraints")
+            alpha = rz / curvature
+            x += alpha * p
+            r -= alpha * Kp
+            res = np.sqrt(_dot(r, r))
+            if np.all(res <= target):
+                self.iterations = it
+                return x
+            z = self.precondition(r)
+            rz_new = _dot(r, z)
+            p = z + (rz_new / rz) * p
+            rz = rz_new
+        self.iterations = self.maxiter
+        worst = float(np.max(res / norm_b))
+        raise ConvergenceError(
+            f"conjugate gradients did not converge: relative residual {worst:.2e} > rtol="
+            f"{self.rtol:g} after {self.maxiter} iterations; use the direct backend "
+            "(method='direct'), a stronger preconditioner, or raise maxiter")
 
 
 def _splu_factor(A) -> Factor:
@@ -127,11 +276,24 @@ def _splu_factor(A) -> Factor:
                                            "motions constrained?") from None
     # With diagonal pivots, K = P^T L U P^T with U's diagonal the pivots of an LDL^T:
     # K is positive definite iff they are all positive and no row swap was needed.
-    pivots = lu.U.diagonal()
-    if not (np.array_equal(lu.perm_r, lu.perm_c) and np.all(pivots > 0)):
-        raise NotPositiveDefiniteError("stiffness is not positive definite (a non-positive "
-                                       "pivot): check moduli, horizon and constraints")
+    if not np.array_equal(lu.perm_r, lu.perm_c):
+        raise NotPositiveDefiniteError("stiffness is not positive definite (a row swap was "
+                                       "needed): check moduli, horizon and constraints")
+    _check_pivots(lu.U.diagonal(), A.diagonal()[np.argsort(lu.perm_c)])
     return Factor(lu.solve)
+
+
+# A pivot (Schur complement of a diagonal entry) below PIVOT_RTOL times that entry is zero
+# in floating point: a rigid-body mode gives ~1e-15..1e-12 with either sign, depending on
+# rounding; a well-posed PD stiffness gives ratios above ~1e-2.
+PIVOT_RTOL = 1e-10
+
+
+def _check_pivots(pivots: np.ndarray, diagonal: np.ndarray) -> None:
+    if not (np.all(diagonal > 0) and np.all(pivots > PIVOT_RTOL * diagonal)):
+        raise NotPositiveDefiniteError("stiffness is not positive definite (a zero or negative "
+                                       "pivot): check moduli, horizon and constraints (are "
+                                       "rigid-body motions constrained?)")
 
 
 class ValuesForm:

@@ -1,16 +1,31 @@
-"""Forward and adjoint cost of a 2D LPS plate (plane stress) per sparse backend.
+"""Forward cost of a 2D plate (plane stress) per material, horizon and solver.
 
-For each particle count and backend: bond search + set-up, numeric assembly, factorisation,
-solve, and the gradient of a scalar of u with respect to (K, G, delta) (one adjoint solve with
-the same factor plus the matrix-free form derivative); peak resident memory of the run.
+For each particle count, m = delta/h, material (LPS or bond-based PMB) and solver:
+
+* set-up: grid, bond search, material, and what the solver caches (pattern and its
+  free-dof restriction for a direct solver; nothing for PCG);
+* assemble: K's values on the free pattern (direct), or the matrix-free operator and the
+  preconditioner's Laplacian (PCG);
+* factorise: CHOLMOD / SuperLU (direct, analysis included: it is a one-off solve), or the
+  Cholesky factor of the preconditioner (PCG);
+* solve: one right-hand side (PCG: the iterations, to a relative residual of 1e-10);
+* total = the four; peak resident memory of the process; relative residual ||K u - f||/||f||.
+
 Each configuration runs in its own process so that peak memory is its own.
 
-    python benchmarks/forward.py [--sizes 10000 40000] [--m 3]
+    python benchmarks/forward.py [--sizes 10000 40000 160801] [--m 2 3]
+        [--materials lps pmb] [--solvers cholmod splu pcg pcg-short] [--threads 2]
+
+Solvers: ``cholmod``/``splu`` = direct on the assembled K; ``pcg`` = matrix-free conjugate
+gradients preconditioned by the Cholesky factor of the bond-graph Laplacian (all bonds);
+``pcg-short`` = the same with only the nearest bonds (|xi| <= 1.5 h) in the preconditioner.
+``--scene`` also times the differentiable ``Scene.solve`` and its gradient (direct only).
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import subprocess
 import sys
@@ -19,70 +34,142 @@ import time
 import numpy as np
 
 
-def run_one(n: int, m: float, backend: str) -> dict:
+def run_one(n: int, m: float, material: str, solver: str, threads: int, scene: bool) -> dict:
     import torch
 
     import bayespd as bp
     from bayespd import sparse
+    from bayespd.stiffness_solver import Assembly
 
-    torch.set_num_threads(1)
+    torch.set_num_threads(threads)
+    sparse.FACTOR_THREADS = threads
     side = int(round(np.sqrt(n)))
     h = 1.0
+    out = {"particles": side * side, "m": m, "material": material, "solver": solver,
+           "threads": threads, "load": os.getloadavg()[0]}
+    t_all = time.perf_counter()
     t0 = time.perf_counter()
     p = bp.grid_2d(side * h, side * h, h)
-    mat = bp.LPS(p, bp.find_bonds(p, m * h), plane="stress")
-    scene = bp.Scene(mat, [bp.Dirichlet.layer(p, "left", m * h)], [bp.Load(p.layer("right", h), (1.0, 0.0))])
-    _ = mat.pattern
-    setup = time.perf_counter() - t0
-    params = {"K": torch.tensor(3333.0, requires_grad=True), "G": torch.tensor(1538.0, requires_grad=True),
-              "delta": torch.tensor(m * h, requires_grad=True)}
-    c = scene.constraints
+    bonds = bp.find_bonds(p, m * h)
+    cls = bp.LPS if material == "lps" else bp.BondBased
+    mat = cls(p, bonds, plane="stress")
+    clamp = np.repeat(p.layer("left", m * h), 2)
+    params = {"K": torch.tensor(3333.0), "G": torch.tensor(1538.0)}
+    delta = torch.tensor(m * h)
+    grams = mat._grams()
+    direct = solver in ("cholmod", "splu")
+    asm = Assembly(grams, ~clamp, pattern=mat.pattern if direct else None)
+    if direct:
+        _ = asm.free_pattern
+    out["setup_s"] = time.perf_counter() - t0
+    out["bonds"] = bonds.n
+    out["dofs"] = int((~clamp).sum())
+
     t0 = time.perf_counter()
-    values = c.free_values(mat.numeric_stiffness(params, params["delta"]))
-    assemble = time.perf_counter() - t0
+    terms = mat._terms(params, delta)
+    f = np.zeros((p.n, 2))
+    f[p.layer("right", h), 0] = 1.0
+    f = f.reshape(-1)[~clamp]
+    if direct:
+        values = asm.values(terms)
+        out["nnz"] = asm.free_pattern.nnz
+        out["assemble_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        factor = asm.free_pattern.factorize(values, solver)
+        out["factorise_s"] = time.perf_counter() - t0
+    else:
+        rows = {grams[0]: bonds.length <= 1.5 * h + 1e-9} if solver == "pcg-short" else None
+        num_terms = [(g, d.detach().numpy(), w.detach().numpy()) for g, d, w in terms]
+        matvec = asm.operator(num_terms)
+        out["assemble_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        precondition = asm.laplacian_preconditioner(num_terms, rows)
+        out["factorise_s"] = time.perf_counter() - t0
+        factor = sparse.PCGFactor(matvec, precondition, len(f), rtol=1e-10)
     t0 = time.perf_counter()
-    factor = c.pattern.factorize(values, backend)
-    factorise = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    factor.solve(c.free(scene.force).numpy())
-    solve = time.perf_counter() - t0
-    sparse.default_backend = lambda: backend
-    t0 = time.perf_counter()
-    u = scene.solve(params)
-    forward = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    u[:, 0].sum().backward()
-    gradient = time.perf_counter() - t0
-    return {"particles": p.n, "dofs": c.pattern.n, "nnz": c.pattern.nnz, "m": m, "backend": backend,
-            "setup_s": setup, "assemble_s": assemble, "factorise_s": factorise, "solve_s": solve,
-            "forward_total_s": forward, "gradient_s": gradient,
-            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+    u = factor.solve(f)
+    out["solve_s"] = time.perf_counter() - t0
+    out["total_s"] = time.perf_counter() - t_all
+    if not direct:
+        out["iterations"] = factor.iterations
+    check = asm.operator([(g, d.detach().numpy(), w.detach().numpy()) for g, d, w in terms])
+    out["rel_residual"] = float(np.linalg.norm(check(u) - f) / np.linalg.norm(f))
+    if scene and direct:
+        sparse.default_backend = lambda: solver
+        sc = bp.Scene(mat, [bp.Dirichlet.layer(p, "left", m * h)], [bp.Load(p.layer("right", h), (1.0, 0.0))])
+        q = {"K": torch.tensor(3333.0, requires_grad=True), "G": torch.tensor(1538.0, requires_grad=True),
+             "delta": torch.tensor(m * h, requires_grad=True)}
+        q = {k: q[k] for k in sc.param_names}
+        t0 = time.perf_counter()
+        us = sc.solve(q)
+        out["scene_solve_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        us[:, 0].sum().backward()
+        out["gradient_s"] = time.perf_counter() - t0
+    out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return out
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sizes", type=int, nargs="+", default=[10_000, 40_000])
-    parser.add_argument("--m", type=float, nargs="+", default=[3.0])
-    parser.add_argument("--backends", nargs="+", default=["cholmod", "splu"])
-    parser.add_argument("--one", nargs=3, help=argparse.SUPPRESS)
+    parser.add_argument("--sizes", type=int, nargs="+", default=[10_000, 40_000, 160_801])
+    parser.add_argument("--m", type=float, nargs="+", default=[2.0, 3.0])
+    parser.add_argument("--materials", nargs="+", default=["lps"], choices=["lps", "pmb"])
+    parser.add_argument("--solvers", nargs="+", default=["cholmod", "pcg-short"],
+                        choices=["cholmod", "splu", "pcg", "pcg-short"])
+    parser.add_argument("--threads", type=int, default=2, help="torch and OpenBLAS threads")
+    parser.add_argument("--scene", action="store_true", help="also time Scene.solve + gradient")
+    parser.add_argument("--timeout", type=float, default=900, help="seconds per configuration")
+    parser.add_argument("--repeat", type=int, default=1, help="runs per configuration; the "
+                        "fastest (total) is printed (the machine is shared: load varies)")
+    parser.add_argument("--wait-load", type=float, default=None, help="before each run, wait "
+                        "(up to --max-wait s) until the 1-minute load average is below this")
+    parser.add_argument("--max-wait", type=float, default=180)
+    parser.add_argument("--json", help="append each result to this JSON-lines file")
+    parser.add_argument("--one", nargs=4, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
-        print(json.dumps(run_one(int(args.one[0]), float(args.one[1]), args.one[2])))
+        n, m, material, solver = args.one
+        print(json.dumps(run_one(int(n), float(m), material, solver, args.threads, args.scene)))
         return
     from bayespd import sparse
-    backends = [b for b in args.backends if b != "cholmod" or sparse.cholmod is not None]
-    header = f"{'particles':>9} {'m':>3} {'backend':>8} {'nnz':>10} {'setup':>7} {'assemble':>8} " \
-             f"{'factor':>7} {'solve':>7} {'forward':>8} {'gradient':>8} {'peak MB':>8}"
-    print(header)
+    solvers = [s for s in args.solvers if s != "cholmod" or sparse.cholmod is not None]
+    print(f"{'particles':>9} {'m':>3} {'mat':>4} {'solver':>9} {'nnz':>10} {'setup':>6} {'assem':>6} "
+          f"{'factor':>7} {'solve':>6} {'total':>7} {'its':>4} {'resid':>8} {'peak MB':>8} {'load':>5}")
     for n in args.sizes:
         for m in args.m:
-            for b in backends:
-                out = subprocess.run([sys.executable, __file__, "--one", str(n), str(m), b],
-                                     capture_output=True, text=True, check=True)
-                r = json.loads(out.stdout.strip().splitlines()[-1])
-                print(f"{r['particles']:>9} {r['m']:>3g} {b:>8} {r['nnz']:>10} {r['setup_s']:>7.2f} "
-                      f"{r['assemble_s']:>8.3f} {r['factorise_s']:>7.3f} {r['solve_s']:>7.3f} "
-                      f"{r['forward_total_s']:>8.3f} {r['gradient_s']:>8.3f} {r['peak_rss_mb']:>8.0f}", flush=True)
+            for material in args.materials:
+                for s in solvers:
+                    cmd = [sys.executable, __file__, "--one", str(n), str(m), material, s,
+                           "--threads", str(args.threads)] + (["--scene"] if args.scene else [])
+                    runs = []
+                    for _ in range(args.repeat):
+                        if args.wait_load is not None:
+                            t_wait = time.time()
+                            while os.getloadavg()[0] >= args.wait_load and time.time() - t_wait < args.max_wait:
+                                time.sleep(5)
+                        try:
+                            res = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout)
+                        except subprocess.TimeoutExpired:
+                            print(f"{n:>9} {m:>3g} {material:>4} {s:>9}  timed out after {args.timeout:g} s", flush=True)
+                            break
+                        if res.returncode != 0:
+                            print(f"{n:>9} {m:>3g} {material:>4} {s:>9}  failed: {res.stderr.strip().splitlines()[-1:]}", flush=True)
+                            break
+                        runs.append(json.loads(res.stdout.strip().splitlines()[-1]))
+                        if args.json:
+                            with open(args.json, "a") as fh:
+                                fh.write(json.dumps(runs[-1]) + "\n")
+                    if not runs:
+                        continue
+                    r = min(runs, key=lambda x: x["total_s"])
+                    extra = ""
+                    if "scene_solve_s" in r:
+                        extra = f"  scene {r['scene_solve_s']:.2f} grad {r['gradient_s']:.2f}"
+                    print(f"{r['particles']:>9} {m:>3g} {material:>4} {s:>9} {r.get('nnz', 0):>10} "
+                          f"{r['setup_s']:>6.2f} {r['assemble_s']:>6.2f} {r['factorise_s']:>7.2f} "
+                          f"{r['solve_s']:>6.2f} {r['total_s']:>7.2f} {r.get('iterations', ''):>4} "
+                          f"{r['rel_residual']:>8.1e} {r['peak_rss_mb']:>8.0f} {r['load']:>5.2f}{extra}", flush=True)
 
 
 if __name__ == "__main__":

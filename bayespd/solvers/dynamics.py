@@ -12,7 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from bayespd.solvers.linear import _numpy, as_matvec, hessian_operator, largest_eigenvalue
+from bayespd.assembly import to_numpy
+from bayespd.solvers.linear import as_matvec, hessian_operator, largest_eigenvalue
 
 
 class NumericalInstabilityError(RuntimeError):
@@ -74,7 +75,7 @@ def lumped_mass(particles, rho, dofs=None) -> torch.Tensor:
 def critical_time_step(stiffness, mass) -> float:
     """2 / sqrt(lambda_max(M^-1 K)): the Verlet limit (``stiffness`` a scipy matrix or a
     numpy matvec; ``mass`` per dof)."""
-    s = 1 / np.sqrt(_numpy(mass))
+    s = 1 / np.sqrt(to_numpy(mass))
     K = as_matvec(stiffness)
     return 2 / np.sqrt(largest_eigenvalue(lambda v: s * K(s * v), len(s)))
 

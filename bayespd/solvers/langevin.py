@@ -34,7 +34,8 @@ import torch
 
 from bayespd.solvers.dynamics import (GrowthMonitor, NumericalInstabilityError, Trajectory, _check_steps,
                                       _Saver, _fix)
-from bayespd.solvers.linear import _numpy, as_matvec, hessian_operator, largest_eigenvalue
+from bayespd.assembly import to_numpy
+from bayespd.solvers.linear import as_matvec, hessian_operator, largest_eigenvalue
 
 
 def _generator(generator) -> torch.Generator:
@@ -66,8 +67,8 @@ class Langevin:
         T = self.C
 
         def matvec(v):
-            Av = np.asarray(A(_numpy(T.sample(torch.from_numpy(v)))))
-            return _numpy(T.adjoint(torch.from_numpy(Av)))
+            Av = np.asarray(A(to_numpy(T.sample(torch.from_numpy(v)))))
+            return to_numpy(T.adjoint(torch.from_numpy(Av)))
 
         return 2 * self.eta / largest_eigenvalue(matvec, T.n_xi)
 
@@ -113,7 +114,7 @@ class Langevin:
                 (self.C.n_xi, *batch), generator=generator, dtype=u.dtype)
             drift = self.force(u)
             if theta > 0:
-                drift = drift + theta * torch.from_numpy(np.asarray(A @ _numpy(u))).to(u.dtype)
+                drift = drift + theta * torch.from_numpy(np.asarray(A @ to_numpy(u))).to(u.dtype)
             u_new = u + a * self.C.matvec(drift) + math.sqrt(2) * self.C.sample(dB)
             if solve is not None:
                 u_new = solve(u_new)

@@ -12,11 +12,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 
+from bayespd.assembly import to_numpy
 from bayespd.sparse import Factor, Pattern
-
-
-def _numpy(x) -> np.ndarray:
-    return x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
 
 
 class LinearForce:
@@ -38,7 +35,7 @@ class LinearForce:
 
     def stiffness_times(self, u: torch.Tensor) -> torch.Tensor:
         """A u."""
-        return torch.from_numpy(np.asarray(self.matrix @ _numpy(u))).to(u.dtype)
+        return torch.from_numpy(np.asarray(self.matrix @ to_numpy(u))).to(u.dtype)
 
     def __call__(self, u: torch.Tensor) -> torch.Tensor:
         p = self.load.to(u.dtype).reshape(-1, *([1] * (u.dim() - 1)))
@@ -105,7 +102,7 @@ def hessian_operator(force, u: torch.Tensor, h: float | None = None):
 
     def matvec(v):
         v = torch.as_tensor(np.asarray(v), dtype=u.dtype)
-        return _numpy((f0 - force(u + h * v)) / h)
+        return to_numpy((f0 - force(u + h * v)) / h)
 
     return matvec
 

@@ -16,18 +16,19 @@ import scipy.sparse.linalg as spla
 import torch
 from scipy.spatial import cKDTree
 
-from bayespd.solvers.linear import _numpy, spd_factor
+from bayespd.assembly import to_numpy
+from bayespd.solvers.linear import spd_factor
 
 
 class Covariance:
     """C = diag(d) + G G^T on n dofs; ``d`` (n,) all positive or all zero, ``G`` (n, m) or None."""
 
     def __init__(self, diagonal, factor=None):
-        self.d = np.asarray(_numpy(diagonal), dtype=np.float64).reshape(-1)
+        self.d = np.asarray(to_numpy(diagonal), dtype=np.float64).reshape(-1)
         if not (np.all(self.d > 0) or np.all(self.d == 0)):
             raise ValueError("the diagonal of C must be all positive or all zero")
         self.n = len(self.d)
-        self.G = None if factor is None else np.asarray(_numpy(factor), dtype=np.float64)
+        self.G = None if factor is None else np.asarray(to_numpy(factor), dtype=np.float64)
         if self.G is not None and self.G.shape[0] != self.n:
             raise ValueError(f"the factor G must have {self.n} rows")
         self._diag = bool(self.d[0] > 0)
@@ -38,7 +39,7 @@ class Covariance:
 
     def sample(self, xi: torch.Tensor) -> torch.Tensor:
         """C^{1/2} xi for xi of shape (n_xi, *batch)."""
-        x = _numpy(xi)
+        x = to_numpy(xi)
         out = np.zeros((self.n, *x.shape[1:]))
         if self._diag:
             out += _col(np.sqrt(self.d), x) * x[: self.n]
@@ -48,7 +49,7 @@ class Covariance:
 
     def adjoint(self, v: torch.Tensor) -> torch.Tensor:
         """(C^{1/2})^T v, of shape (n_xi, *batch)."""
-        x = _numpy(v)
+        x = to_numpy(v)
         parts = [_col(np.sqrt(self.d), x) * x] if self._diag else []
         if self.G is not None:
             parts.append(self.G.T @ x)
@@ -56,7 +57,7 @@ class Covariance:
 
     def matvec(self, v: torch.Tensor) -> torch.Tensor:
         """C v."""
-        x = _numpy(v)
+        x = to_numpy(v)
         out = _col(self.d, x) * x
         if self.G is not None:
             out = out + self.G @ (self.G.T @ x)
@@ -81,13 +82,13 @@ class Covariance:
             def base(r):
                 return r
         if self.G is None:
-            return lambda r: torch.from_numpy(np.asarray(base(_numpy(r)))).to(r.dtype)
+            return lambda r: torch.from_numpy(np.asarray(base(to_numpy(r)))).to(r.dtype)
         W = np.asarray(base(b * self.G))
         GA = np.asarray((A @ self.G).T)  # G^T A (A symmetric)
         lu = sla.lu_factor(np.eye(self.m) + GA @ W)
 
         def solve(r):
-            y = np.asarray(base(_numpy(r)))
+            y = np.asarray(base(to_numpy(r)))
             return torch.from_numpy(y - W @ sla.lu_solve(lu, GA @ y)).to(r.dtype)
 
         return solve
@@ -100,7 +101,7 @@ def _col(w: np.ndarray, x: np.ndarray) -> np.ndarray:
 
 def white_noise(sigma, n: int) -> Covariance:
     """C = sigma^2 I on n dofs (sigma a scalar or one value per dof)."""
-    s = np.broadcast_to(np.asarray(_numpy(sigma), dtype=np.float64), (n,))
+    s = np.broadcast_to(np.asarray(to_numpy(sigma), dtype=np.float64), (n,))
     if not (np.all(np.isfinite(s)) and np.all(s > 0)):
         raise ValueError("sigma must be finite and positive")
     return Covariance(s**2)
@@ -149,7 +150,7 @@ def karhunen_loeve(x, sigma, length: float, rank: int | None = None, fraction: f
         if rank or lam.sum() >= fraction * N or r == N - 1:
             break
         r = min(2 * r, N - 1)
-    s = np.broadcast_to(np.asarray(_numpy(sigma), dtype=np.float64), (N,))
+    s = np.broadcast_to(np.asarray(to_numpy(sigma), dtype=np.float64), (N,))
     if not (np.all(np.isfinite(s)) and np.all(s > 0)):
         raise ValueError("sigma must be finite and positive")
     G = np.kron(s[:, None] * phi * np.sqrt(lam), np.eye(dim))

@@ -1,0 +1,190 @@
+"""Factorisations of a Gram-sum stiffness on the free dofs: direct (CHOLMOD / SuperLU on the
+assembled K_ff) or matrix-free preconditioned conjugate gradients (K never assembled), behind
+one ``Factor`` interface. See ``Assembly`` and benchmarks/README.md for when each wins.
+"""
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+from functools import cached_property
+
+import numpy as np
+import scipy.sparse as sp
+import torch
+
+from bayespd.assembly import Gram, numeric_values, to_numpy, union_pattern
+from bayespd.sparse import (NotPositiveDefiniteError, Pattern, PCGFactor, blas_threads, cholmod,
+                            default_backend)
+
+
+class Assembly:
+    """Factorisations of K = sum_t A_t^T diag(w_t) A_t restricted to the free dofs.
+
+    ``Assembly(grams, free)`` caches what does not change with the parameters (pattern, its
+    free-dof restriction, symbolic analysis); ``factorize(terms, method)`` returns a
+    ``Factor`` of K_ff for the (gram, data, w) triples of one parameter value.
+
+    * ``method="direct"``: K's values on the union pattern (``numeric_values``), restricted,
+      factorised by ``Pattern.factorize`` (CHOLMOD or SuperLU).
+    * ``method="pcg"``: K is never assembled. Conjugate gradients with the matrix-free product
+      sum_t A_t^T (w_t (A_t x)) (scipy CSR, O(entries of A) per product), preconditioned by a
+      Cholesky factor of the graph Laplacian of the two-particle rows (the bonds) with
+      non-negative weights, one copy per displacement component. ``precondition_rows`` maps a
+      Gram to a boolean mask of the rows (bonds) the preconditioner keeps: keeping only the
+      nearest bonds (|xi| <= 1.5 h) gives a factor much cheaper than K's at the price of more
+      iterations (benchmarks/README.md). Converges to ``rtol`` or raises ``ConvergenceError``.
+    """
+
+    def __init__(self, grams: list[Gram], free: np.ndarray | None = None,
+                 pattern: Pattern | None = None):
+        self.grams = list(grams)
+        self.n = self.grams[0].shape[1]
+        self.free = np.ones(self.n, dtype=bool) if free is None else np.asarray(free, dtype=bool)
+        if self.free.shape != (self.n,):
+            raise ValueError(f"free must be a boolean mask of the {self.n} dofs")
+        self.free_index = np.flatnonzero(self.free)
+        self._given_pattern = pattern
+        self._laplacian = {}
+
+    @cached_property
+    def pattern(self) -> Pattern:
+        return self._given_pattern if self._given_pattern is not None else union_pattern(self.grams)
+
+    @cached_property
+    def _restricted(self):
+        if self.free.all():
+            return self.pattern, None
+        return self.pattern.restrict(self.free)
+
+    @property
+    def free_pattern(self) -> Pattern:
+        return self._restricted[0]
+
+    def values(self, terms) -> torch.Tensor:
+        """K_ff's values on ``free_pattern``."""
+        values = numeric_values(self.pattern, terms)
+        entries = self._restricted[1]
+        return values if entries is None else values[torch.as_tensor(entries)]
+
+    def factorize(self, terms, method: str = "direct", backend: str | None = None,
+                  rtol: float = 1e-10, maxiter: int | None = None, precondition_rows=None):
+        if method == "direct":
+            return self.free_pattern.factorize(self.values(terms), backend)
+        if method == "pcg":
+            terms = [(g, to_numpy(d), to_numpy(w)) for g, d, w in terms]
+            precondition = self.laplacian_preconditioner(terms, precondition_rows, backend)
+            return PCGFactor(self.operator(terms), precondition, len(self.free_index),
+                             rtol=rtol, maxiter=maxiter)
+        raise ValueError(f"unknown method {method!r}: use 'direct' or 'pcg'")
+
+    def operator(self, terms, threads: int | None = None):
+        """x -> K_ff x matrix-free (numpy, x of shape (n_free,) or (n_free, k)).
+
+        The operators are stacked into one CSR matrix C (rows: bonds, then particles, ...)
+        with weights W, K = C^T W C, split into ``threads`` row blocks of equal size that are
+        applied in parallel (scipy's sparse products release the GIL)."""
+        C = sp.vstack([g.operator(to_numpy(d)) for g, d, _ in terms], format="csr")
+        W = np.concatenate([np.asarray(to_numpy(w), dtype=np.float64) for _, _, w in terms])
+        threads = max(1, int(threads or MATVEC_THREADS or os.cpu_count() or 1))
+        cuts = np.searchsorted(C.indptr, np.linspace(0, C.nnz, threads + 1)[1:-1])
+        bounds = [0, *cuts.tolist(), C.shape[0]]
+        parts = [(C[a:b], W[a:b]) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+        idx, n = self.free_index, self.n
+        pool = _pool(len(parts)) if len(parts) > 1 else None
+
+        def part(Ci, Wi, full):
+            return Ci.T @ (Wi.reshape(-1, *([1] * (full.ndim - 1))) * (Ci @ full))
+
+        def matvec(x):
+            full = np.zeros((n,) + x.shape[1:])
+            full[idx] = x
+            if pool is None:
+                y = part(*parts[0], full)
+            else:
+                futures = [pool.submit(part, Ci, Wi, full) for Ci, Wi in parts[1:]]
+                y = part(*parts[0], full)
+                for f in futures:
+                    y += f.result()
+            return y[idx]
+
+        return matvec
+
+    def laplacian_preconditioner(self, terms, rows=None, backend=None):
+        """r -> P^-1 r with P = (L kron I_b) on the free dofs, L the weighted graph Laplacian
+        of the rows of A that touch two particles (weight w_r |a_r|^2 / (2 b))."""
+        b = self.grams[0].block
+        if b == 1 or not all(g.block == b for g, _, _ in terms):
+            raise ValueError("the PCG preconditioner needs operators on whole particles (blocks)")
+        nodes = self.n // b
+        pi, pj, pw = [], [], []
+        for g, d, w in terms:
+            ind, ptr = g._block_parts()
+            two = np.flatnonzero(np.diff(ptr) == 2)
+            if rows is not None and g in rows:
+                two = two[np.asarray(rows[g], dtype=bool)[two]]
+            if len(two) == 0:
+                continue
+            blocks = g._ordered(np.asarray(d, dtype=np.float64)).reshape(-1, b)
+            strength = 0.5 * (blocks[ptr[two]] ** 2 + blocks[ptr[two] + 1] ** 2).sum(axis=1) / b
+            weight = np.maximum(np.asarray(w, dtype=np.float64)[two], 0.0) * strength
+            pi.append(ind[ptr[two]]), pj.append(ind[ptr[two] + 1]), pw.append(weight)
+        if not pi:
+            raise ValueError("no two-particle rows (bonds) to build the PCG preconditioner from")
+        i, j, w = np.concatenate(pi), np.concatenate(pj), np.concatenate(pw)
+        L = sp.coo_matrix((np.concatenate([-w, -w, w, w]),
+                           (np.concatenate([i, j, i, j]), np.concatenate([j, i, i, j]))),
+                          shape=(nodes, nodes)).tocsc()
+        free = self.free.reshape(nodes, b)
+        groups = {}  # components with the same free particles share one factor
+        for c in range(b):
+            groups.setdefault(free[:, c].tobytes(), []).append(c)
+        solvers = []
+        for key, comps in groups.items():
+            mask = free[:, comps[0]]
+            solvers.append((mask, comps, _spd_factor(L[mask][:, mask], backend)))
+        idx, n = self.free_index, self.n
+
+        def precondition(r):
+            full = np.zeros((n,) + r.shape[1:])
+            full[idx] = r
+            R = full.reshape((nodes, b) + r.shape[1:])
+            Z = np.zeros_like(R)
+            for mask, comps, solve in solvers:
+                block = R[mask][:, comps]
+                Z[np.ix_(mask, comps)] = solve(block.reshape(len(block), -1)).reshape(block.shape)
+            return Z.reshape((n,) + r.shape[1:])[idx]
+
+        return precondition
+
+
+MATVEC_THREADS: int | None = 1  # threads of the matrix-free product (None: all cores)
+_POOLS: dict = {}
+
+
+def _pool(n: int) -> ThreadPoolExecutor:
+    if n not in _POOLS:
+        _POOLS[n] = ThreadPoolExecutor(max_workers=n - 1, thread_name_prefix="bayespd-matvec")
+    return _POOLS[n]
+
+
+def _spd_factor(L: sp.csc_matrix, backend=None):
+    """solve(B) with L (plus a tiny diagonal shift, so that a free cluster without a
+    constrained particle still gives an SPD preconditioner)."""
+    diag = L.diagonal()
+    scale = float(diag[diag > 0].mean()) if np.any(diag > 0) else 1.0
+    for eps in (1e-12, 1e-6):
+        shift = np.where(diag > 0, eps * scale, scale)
+        A = (L + sp.diags(shift)).tocsc()
+        A.sort_indices()
+        backend = backend or default_backend()
+        try:
+            if backend == "cholmod":
+                with blas_threads(None):
+                    f = cholmod.cholesky(A, mode="supernodal", ordering_method="amd")
+                return f.solve_A
+            pattern = Pattern(A.indices.astype(np.int64),
+                              np.repeat(np.arange(A.shape[0]), np.diff(A.indptr)), A.shape[0])
+            return pattern.factorize(torch.as_tensor(A.data), backend).solve
+        except (NotPositiveDefiniteError, getattr(cholmod, "CholmodNotPositiveDefiniteError", ())):
+            continue
+    raise NotPositiveDefiniteError("the PCG preconditioner (bond-graph Laplacian) is singular")
