@@ -48,8 +48,11 @@ def moduli_from_young(E, nu):
     if not bool(torch.all(torch.isfinite(E)) and torch.all(E > 0)):
         raise ValueError("Young's modulus E must be finite and positive")
     if not bool(torch.all((nu > -1) & (nu < 0.5))):
-        raise ValueError("Poisson's ratio must lie in (-1, 0.5): nu = 0.5 is incompressible "
-                         "and makes the plane-stress LPS constants singular; use nu < 0.5")
+        raise ValueError("Poisson's ratio must lie in (-1, 0.5): at nu = 0.5 (incompressible) "
+                         "K = E / (3 (1 - 2 nu)) is infinite, and with it the plane-strain LPS "
+                         "constant kappa = K + G/3, and above 0.5 K is negative; use nu < 0.5 "
+                         "(e.g. 0.499: the condition number of K grows like 1 / (1 - 2 nu), "
+                         "which a float64 direct solve handles)")
     return E / (3 * (1 - 2 * nu)), E / (2 * (1 + nu))
 
 

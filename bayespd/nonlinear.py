@@ -23,6 +23,12 @@ For small u both forces equal the linearised -K u up to O(|u|^2).
 
 The force is written by hand (gather, per-bond scalar, two ``index_add_``), never through
 autograd of the energy; it is differentiable in the moduli, the horizon and mu.
+
+Rounding: the extension is evaluated as e = eta . (xi + y) / (|y| + |xi|) (= |y| - |xi|,
+since |y|^2 - |xi|^2 = eta . (y + xi)), which carries a relative rounding error of a few
+machine epsilons at any strain; |y| - |xi| would lose log10(1/s) digits to cancellation
+(in float32 at s = 1e-4 a relative error of 1e-3). This is what makes float32 usable for
+explicit dynamics (``at(..., dtype=torch.float32)``; float64 is the default).
 """
 from __future__ import annotations
 
@@ -49,52 +55,92 @@ class NonlinearBonds:
         self.xi = torch.as_tensor(material.bonds.xi)
         self.length = material.length
         self.n, self.dim = material.particles.n, material.dim
-        # flat dof indices d*i + a: 1-D gathers and index_add_ are the fastest on CPU
-        d, a = self.dim, torch.arange(self.dim)
-        self._di = (d * self.i[:, None] + a).reshape(-1)
-        self._dj = (d * self.j[:, None] + a).reshape(-1)
+        # one contiguous array per component (flat dof indices d*i + a): 1-D gathers, element-wise
+        # ops on contiguous arrays and a single index_add_ are the fastest on CPU
+        # (benchmarks/README.md, "Explicit dynamics and Langevin")
+        d = self.dim
+        self._di = [d * self.i + a for a in range(d)]
+        self._dj = [d * self.j + a for a in range(d)]
+        self._scatter_index = torch.cat(self._di + self._dj)
+        self._geometry = {}
+
+    def geometry(self, dtype) -> tuple[list[torch.Tensor], torch.Tensor]:
+        """(components of xi, |xi|) in ``dtype`` (converted once per dtype)."""
+        if dtype not in self._geometry:
+            if dtype not in (torch.float32, torch.float64):
+                raise ValueError(f"u must be float64 (default) or float32, got {dtype}")
+            xi = self.xi.to(dtype)
+            self._geometry[dtype] = ([xi[:, a].contiguous() for a in range(self.dim)], self.length.to(dtype))
+        return self._geometry[dtype]
+
+    def _components(self, u: torch.Tensor):
+        """([y_a], |y|, e) with y_a the components of the deformed bonds y = xi + u_j - u_i and
+        e = |y| - |xi| (cancellation-free, see the module docstring)."""
+        if u.shape != (self.n, self.dim):
+            raise ValueError(f"u must have shape ({self.n}, {self.dim}), got {tuple(u.shape)}")
+        xi, length = self.geometry(u.dtype)
+        flat = u.reshape(-1)
+        eta = [flat.index_select(0, dj) - flat.index_select(0, di) for di, dj in zip(self._di, self._dj)]
+        y = [ea + xa for ea, xa in zip(eta, xi)]
+        r = torch.hypot(*y) if self.dim == 2 else torch.sqrt(sum(ya * ya for ya in y))
+        e = eta[0] * (y[0] + xi[0])
+        for ea, ya, xa in zip(eta[1:], y[1:], xi[1:]):
+            e = e.addcmul(ea, ya + xa)
+        return y, r, e / (r + length)
+
+    def kinematics(self, u: torch.Tensor):
+        """(y, |y|, e): deformed bond vectors y = xi + u_j - u_i (n_bonds, dim), their lengths
+        and the extensions e = |y| - |xi|."""
+        y, r, e = self._components(u)
+        return torch.stack(y, 1), r, e
 
     def deformed(self, u: torch.Tensor):
         """(y, |y|): deformed bond vectors xi + u_j - u_i and their lengths."""
-        if u.shape != (self.n, self.dim):
-            raise ValueError(f"u must have shape ({self.n}, {self.dim}), got {tuple(u.shape)}")
-        flat = u.reshape(-1)
-        y = (flat.index_select(0, self._dj) - flat.index_select(0, self._di)).view(-1, self.dim)
-        y += self.xi
-        return y, torch.linalg.vector_norm(y, dim=1)
+        return self.kinematics(u)[:2]
 
     def stretch(self, u: torch.Tensor) -> torch.Tensor:
         """s = (|xi + eta| - |xi|) / |xi| per bond for u of shape (N, dim)."""
-        return self.deformed(u)[1] / self.length - 1
+        return self._components(u)[2] / self.geometry(u.dtype)[1]
 
-    def at(self, params: dict, delta):
-        """The material's per-bond coefficients at (params, delta) (differentiable)."""
+    def at(self, params: dict, delta, dtype=torch.float64):
+        """The material's per-bond coefficients at (params, delta) (differentiable), in
+        ``dtype`` (float32: for large explicit dynamics only; the displacement must match)."""
+        self.geometry(dtype)
         cls = LPSForce if isinstance(self.material, LPS) else PMBForce
-        return cls(self, params, delta)
+        return cls(self, params, delta, dtype)
 
     def force(self, u, params: dict, delta, intact=None) -> torch.Tensor:
         """Internal force -dV_strain/du, shape (N, dim)."""
-        return self.at(params, delta).force(u, intact)
+        return self.at(params, delta, u.dtype).force(u, intact)
 
     def energy(self, u, params: dict, delta, intact=None, load=None, eps: float = 0.0):
         """Total potential energy V(u) of seed 002 eq 3."""
-        return self.at(params, delta).energy(u, intact, load, eps)
+        return self.at(params, delta, u.dtype).energy(u, intact, load, eps)
 
 
 class _Force:
     """Per-bond coefficients at one (params, delta): ``force(u, intact)``,
     ``strain_energy(u, intact)`` and ``energy(u, intact, load, eps)``."""
 
-    def __init__(self, kin: NonlinearBonds, params: dict, delta):
-        self.kin = kin
+    def __init__(self, kin: NonlinearBonds, params: dict, delta, dtype=torch.float64):
+        self.kin, self.dtype = kin, dtype
         self.moduli = kin.material._moduli(params)
         self.factor = kin.material._bond_correction(self.moduli, params, delta)
 
+    def _kinematics(self, u, intact):
+        """kin._components(u) and the intact fractions in this dtype; refuses a u of another
+        dtype (the coefficients were converted once, in ``NonlinearBonds.at``)."""
+        if u.dtype != self.dtype:
+            raise ValueError(f"u is {u.dtype} but these coefficients are {self.dtype}: "
+                             f"use NonlinearBonds.at(params, delta, dtype={u.dtype})")
+        return self.kin._components(u), None if intact is None else torch.as_tensor(intact).to(self.dtype)
+
     def _scatter(self, y, t_over_r, like):
-        """Bond force t y/|y| pulls i towards j (+) and j towards i (-)."""
-        fb = (y * t_over_r[:, None]).view(-1)
-        f = torch.zeros(like.numel(), dtype=fb.dtype).index_add_(0, self.kin._di, fb)
-        return f.index_add_(0, self.kin._dj, -fb).view(like.shape)
+        """Bond force t y/|y| pulls i towards j (+) and j towards i (-): one index_add_."""
+        fb = [ya * t_over_r for ya in y]
+        fb = torch.cat(fb + [-fa for fa in fb])
+        f = torch.zeros(like.numel(), dtype=fb.dtype).index_add_(0, self.kin._scatter_index, fb)
+        return f.view(like.shape)
 
     def energy(self, u, intact=None, load=None, eps: float = 0.0):
         """Strain energy - p . u + (eps/2) u . u (seed 002 eq 3)."""
@@ -107,18 +153,17 @@ class _Force:
 class PMBForce(_Force):
     """Bond-based PMB: t_b = k_b mu e_b with k_b = c_b w_b V_i V_j / |xi| (times the factor)."""
 
-    def __init__(self, kin, params, delta):
-        super().__init__(kin, params, delta)
-        self.k = self.factor * kin.material._bond_stiffness(self.moduli, params, delta)
-        self.kL = self.k * kin.length
+    def __init__(self, kin, params, delta, dtype=torch.float64):
+        super().__init__(kin, params, delta, dtype)
+        self.k = (self.factor * kin.material._bond_stiffness(self.moduli, params, delta)).to(dtype)
 
     def force(self, u, intact=None):
-        y, r = self.kin.deformed(u)
-        t_over_r = self.k - self.kL / r  # k e / r
-        return self._scatter(y, t_over_r if intact is None else t_over_r * intact, u)
+        (y, r, e), intact = self._kinematics(u, intact)
+        k = self.k if intact is None else self.k * intact
+        return self._scatter(y, k * e / r, u)
 
     def strain_energy(self, u, intact=None):
-        e = self.kin.deformed(u)[1] - self.kin.length
+        (_, _, e), intact = self._kinematics(u, intact)
         k = self.k if intact is None else self.k * intact
         return 0.5 * (k * e * e).sum()
 
@@ -127,17 +172,18 @@ class LPSForce(_Force):
     """LPS: dV/de_b = mu w V_i V_j [|xi| (a_i + a_j) + F_b e (b_i + b_j)] with
     a = 2 d A theta / m, b = c_d G / m, A = kappa/2 - c_d G/(2 d^2), F_b the surface factor."""
 
-    def __init__(self, kin, params, delta):
-        super().__init__(kin, params, delta)
+    def __init__(self, kin, params, delta, dtype=torch.float64):
+        super().__init__(kin, params, delta, dtype)
         mat, d, L = kin.material, kin.dim, kin.length
         K, G = self.moduli["K"], self.moduli["G"]
-        self.A = 0.5 * (mat.kappa(K, G) - _C_DEV[d] * G / d**2)
-        self.cG = _C_DEV[d] * G
         w = mat.bond_weight(params, delta)
-        self.m0 = mat.weighted_volume(w)
         Vi, Vj = mat.volume[kin.i], mat.volume[kin.j]
-        self.wVVL, self.wVVF = w * Vi * Vj * L, w * Vi * Vj * self.factor
-        self.wLVi, self.wLVj = w * L * Vi, w * L * Vj
+        coef = {"A": 0.5 * (mat.kappa(K, G) - _C_DEV[d] * G / d**2), "cG": _C_DEV[d] * G,
+                "m0": mat.weighted_volume(w), "volume": mat.volume,
+                "wVVL": w * Vi * Vj * L, "wVVF": w * Vi * Vj * self.factor,
+                "wLVi": w * L * Vi, "wLVj": w * L * Vj}
+        for name, value in coef.items():
+            setattr(self, name, value.to(dtype))
 
     def _sum(self, at_i, at_j):
         """Per-particle sum of per-bond values at_i (to end i) and at_j (to end j)."""
@@ -145,22 +191,21 @@ class LPSForce(_Force):
         return z.index_add_(0, self.kin.i, at_i).index_add_(0, self.kin.j, at_j)
 
     def _state(self, u, intact):
-        """(y, |y|, mu e, e, m, theta); mu e stands for e when there is no damage."""
+        """(y, |y|, mu e, e, m, theta, mu); mu e stands for e when there is no damage."""
         kin = self.kin
-        y, r = kin.deformed(u)
-        e = r - kin.length
+        (y, r, e), intact = self._kinematics(u, intact)
         if intact is None:
             me, m = e, self.m0
         else:
             me = e * intact
-            wL2 = intact * kin.length
+            wL2 = intact * kin.geometry(self.dtype)[1]
             m = torch.maximum(self._sum(wL2 * self.wLVj, wL2 * self.wLVi), M_FLOOR * self.m0)
         theta = kin.dim / m * self._sum(self.wLVj * me, self.wLVi * me)
-        return y, r, me, e, m, theta
+        return y, r, me, e, m, theta, intact
 
     def force(self, u, intact=None):
         kin = self.kin
-        y, r, me, e, m, theta = self._state(u, intact)
+        y, r, me, e, m, theta, intact = self._state(u, intact)
         ab = torch.stack([2 * kin.dim * self.A * theta / m, self.cG / m], dim=1)
         ab = ab.index_select(0, kin.i) + ab.index_select(0, kin.j)
         bond = self.wVVL * ab[:, 0] if intact is None else self.wVVL * intact * ab[:, 0]
@@ -168,7 +213,7 @@ class LPSForce(_Force):
         return self._scatter(y, t / r, u)
 
     def strain_energy(self, u, intact=None):
-        y, r, me, e, m, theta = self._state(u, intact)
+        y, r, me, e, m, theta, _ = self._state(u, intact)
         b = self.cG / m
         bond = 0.5 * self.wVVF * me * e * (b[self.kin.i] + b[self.kin.j])
-        return (self.kin.material.volume * self.A * theta**2).sum() + bond.sum()
+        return (self.volume * self.A * theta**2).sum() + bond.sum()

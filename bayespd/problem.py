@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import warnings
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -11,7 +12,7 @@ from scipy.sparse.csgraph import connected_components
 from bayespd.stiffness_solver import Assembly
 from bayespd.boundary import Constraints, Dirichlet, Load
 from bayespd.observe import LinearObservation
-from bayespd.sparse import solve_form
+from bayespd.sparse import ValuesForm, solve_form
 
 
 class Scene:
@@ -20,12 +21,20 @@ class Scene:
     ``params`` holds the material moduli (``material.param_names``, e.g. K and G), the
     horizon ``delta`` and an optional ``load`` factor scaling every load. Each may be a
     tensor that requires grad: the gradient costs one extra solve with the same factor.
+
+    ``eps`` >= 0 is the confinement of seed 002 eq 3, (eps/2) sum_i u_i.u_i: the operator on
+    the free dofs is A = K_ff + eps I (direct solver only).
     """
 
     def __init__(self, material, dirichlet: list[Dirichlet], loads: list[Load],
                  observation: LinearObservation | None = None, solver: str = "direct",
-                 precondition_radius: float | None = 1.5, rtol: float = 1e-10):
+                 precondition_radius: float | None = 1.5, rtol: float = 1e-10, eps: float = 0.0):
         p = material.particles
+        if not eps >= 0:
+            raise ValueError(f"the confinement eps must be >= 0, got {eps}")
+        if eps and solver != "direct":
+            raise ValueError("eps > 0 needs solver='direct'")
+        self.eps = float(eps)
         if not dirichlet:
             raise ValueError("a static scene needs at least one Dirichlet region")
         if not loads:
@@ -62,29 +71,85 @@ class Scene:
         return {k: torch.as_tensor(v) for k, v in params.items()}
 
     def _form(self, v_free, u_free, *theta):
-        """v^T K_ff u on the free dofs, as a function of the parameters in param_names."""
+        """v^T A u on the free dofs (A = K_ff + eps I), as a function of the parameters in
+        param_names; for (n_free, k) columns, the sum of the k column forms."""
         q = dict(zip(self.param_names, theta))
         c = self.constraints
-        return self.material.form(q, q["delta"], c.embed(v_free), c.embed(u_free))
+        if u_free.dim() == 1:
+            form = self.material.form(q, q["delta"], c.embed(v_free), c.embed(u_free))
+        elif self.solver == "direct":  # one differentiable assembly of K_ff for all columns
+            form = ValuesForm(c.pattern)(v_free, u_free, self.stiffness_values(q))
+        else:
+            form = sum(self._form(v_free[:, j], u_free[:, j], *theta) for j in range(u_free.shape[1]))
+        return form + self.eps * (v_free * u_free).sum() if self.eps else form
 
-    def solve(self, params: dict) -> torch.Tensor:
-        """Displacement (N, dim) at equilibrium; differentiable (twice) in every param."""
+    def stiffness_values(self, params: dict) -> torch.Tensor:
+        """Values of A = K_ff + eps I on ``constraints.pattern``, differentiable (direct solver)."""
         p = self._params(params)
+        values = self.constraints.free_values(self.material.stiffness(p, p["delta"]))
+        return values + self.eps * self._diagonal if self.eps else values
+
+    @cached_property
+    def _diagonal(self) -> torch.Tensor:
+        """Indicator of the diagonal entries of ``constraints.pattern``."""
+        pattern = self.constraints.pattern
+        d = torch.zeros(pattern.nnz)
+        d[pattern.position(np.arange(pattern.n), np.arange(pattern.n))] = 1.0
+        return d
+
+    def _factor(self, p: dict):
         c, m = self.constraints, self.material
         with torch.no_grad():
             if self.solver == "direct":
-                factor = c.pattern.factorize(c.free_values(m.numeric_stiffness(p, p["delta"])))
-            else:
-                factor = self._assembly.factorize(m._terms(p, p["delta"]), "pcg", rtol=self.rtol,
-                                                  precondition_rows=self._precondition_rows)
+                values = c.free_values(m.numeric_stiffness(p, p["delta"]))
+                return c.pattern.factorize(values + self.eps * self._diagonal if self.eps else values)
+            return self._assembly.factorize(m._terms(p, p["delta"]), "pcg", rtol=self.rtol,
+                                            precondition_rows=self._precondition_rows)
+
+    def free_load(self, params: dict) -> torch.Tensor:
+        """The right-hand side f_f - K_fc u_c on the free dofs (differentiable)."""
+        p = self._params(params)
+        c, m = self.constraints, self.material
         f = self.force * p["load"] if "load" in p else self.force
         rhs = c.free(f)
-        if c.has_prescribed:  # f_f - K_fc u_c, K u_c as the gradient of the form
+        if c.has_prescribed:  # K u_c as the gradient of the form (also under no_grad)
             v = torch.zeros_like(c.prescribed, requires_grad=True)
-            Ku = torch.autograd.grad(m.form(p, p["delta"], v, c.prescribed), v, create_graph=True)[0]
+            with torch.enable_grad():
+                Ku = torch.autograd.grad(m.form(p, p["delta"], v, c.prescribed), v,
+                                         create_graph=torch.is_grad_enabled())[0]
             rhs = rhs - c.free(Ku)
-        u_free = solve_form(self._form, factor, rhs, [p[k] for k in self.param_names])
-        return c.expand(u_free)
+        return rhs
+
+    def solve_free(self, params: dict, rhs: torch.Tensor) -> torch.Tensor:
+        """A^-1 rhs on the free dofs for rhs (n_free,) or (n_free, k): one factorisation for
+        all columns, differentiable (twice) in every param and in rhs."""
+        p = self._params(params)
+        n = len(self.constraints.free_dofs)
+        if rhs.shape[0] != n:
+            raise ValueError(f"rhs must have {n} rows (the free dofs), got {tuple(rhs.shape)}")
+        return solve_form(self._form, self._factor(p), rhs, [p[k] for k in self.param_names])
+
+    def solve(self, params: dict) -> torch.Tensor:
+        """Displacement (N, dim) at equilibrium; differentiable (twice) in every param."""
+        return self.constraints.expand(self.solve_free(params, self.free_load(params)))
+
+    def observation_matrix(self) -> torch.Tensor:
+        """H on the free dofs as a sparse COO (n_points * dim, n_free) tensor: the observed
+        displacements (flattened point-major) are H u_free + (the prescribed dofs' part)."""
+        if self.observation is None:
+            raise ValueError("this scene has no observation operator")
+        obs, dim, c = self.observation, self.particles.dim, self.constraints
+        index, weights = obs._index.numpy(), obs._weights.numpy()
+        rows = (np.arange(obs.n)[:, None, None] * dim + np.arange(dim)).repeat(index.shape[1], 1)
+        cols = index[:, :, None] * dim + np.arange(dim)
+        vals = np.broadcast_to(weights[:, :, None], rows.shape)
+        free_col = np.full(c.shape[0] * dim, -1)
+        free_col[c.free_dofs] = np.arange(len(c.free_dofs))
+        keep = (free_col[cols] >= 0) & (vals != 0)
+        H = sp.coo_matrix((vals[keep], (rows[keep], free_col[cols[keep]])),
+                          shape=(obs.n * dim, len(c.free_dofs))).tocsr().tocoo()  # sums duplicates
+        return torch.sparse_coo_tensor(np.stack([H.row, H.col]), H.data, H.shape,
+                                       check_invariants=True).coalesce()
 
     def observe(self, u: torch.Tensor) -> torch.Tensor:
         if self.observation is None:

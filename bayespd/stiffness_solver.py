@@ -167,6 +167,10 @@ def _pool(n: int) -> ThreadPoolExecutor:
     return _POOLS[n]
 
 
+_NOT_SPD = (NotPositiveDefiniteError,) + (
+    (cholmod.CholmodNotPositiveDefiniteError,) if cholmod is not None else ())
+
+
 def _spd_factor(L: sp.csc_matrix, backend=None):
     """solve(B) with L (plus a tiny diagonal shift, so that a free cluster without a
     constrained particle still gives an SPD preconditioner)."""
@@ -185,6 +189,6 @@ def _spd_factor(L: sp.csc_matrix, backend=None):
             pattern = Pattern(A.indices.astype(np.int64),
                               np.repeat(np.arange(A.shape[0]), np.diff(A.indptr)), A.shape[0])
             return pattern.factorize(torch.as_tensor(A.data), backend).solve
-        except (NotPositiveDefiniteError, getattr(cholmod, "CholmodNotPositiveDefiniteError", ())):
+        except _NOT_SPD:
             continue
     raise NotPositiveDefiniteError("the PCG preconditioner (bond-graph Laplacian) is singular")

@@ -1,7 +1,8 @@
 """Linear pieces shared by the time integrators.
 
 ``LinearForce`` is f(u) = p - A u with A = K + eps I: the force of the potential of seed 002
-eq 3 with the linearised bond energy, V(u) = u^T K u / 2 - p^T u + (eps / 2) u^T u.
+eq 3 with the linearised bond energy, V(u) = u^T K u / 2 - p^T u + (eps / 2) u^T u, of the
+intact or the damaged body (``damaged_terms``).
 ``largest_eigenvalue`` (Lanczos) gives stable time steps; ``spd_factor`` factorises a scipy
 SPD matrix with the project's sparse backends (CHOLMOD or SuperLU).
 """
@@ -11,23 +12,31 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
+from scipy.sparse.csgraph import connected_components
 
-from bayespd.assembly import to_numpy
-from bayespd.sparse import Factor, Pattern
+from bayespd.assembly import numeric_values, to_numpy
+from bayespd.materials import _C_DEV, LPS
+from bayespd.nonlinear import M_FLOOR
+from bayespd.sparse import Factor, NotPositiveDefiniteError, Pattern
+
+CONNECTED = 1e-6  # bonds with a smaller intact fraction no longer hold a piece in place
 
 
 class LinearForce:
     """f(u) = p - A u for a sparse symmetric A (n x n) and load p (n,); u is (n,) or (n, batch).
 
     ``matrix`` is A as scipy CSR (what the semi-implicit Langevin step takes as its operator).
+    ``floating``: particles whose piece of the body has no support and no confinement, so
+    that A is singular (from ``linear_elastic``; empty when unknown).
     """
 
-    def __init__(self, A, p=None):
+    def __init__(self, A, p=None, floating=None):
         self.matrix = sp.csr_matrix(A, dtype=np.float64)
         n = self.matrix.shape[0]
         self.load = torch.zeros(n) if p is None else torch.as_tensor(p, dtype=torch.float64).reshape(-1)
         if self.load.shape != (n,):
             raise ValueError(f"load must have {n} entries, got {tuple(self.load.shape)}")
+        self.floating = np.zeros(0, dtype=np.int64) if floating is None else np.asarray(floating)
 
     @property
     def n(self) -> int:
@@ -46,21 +55,75 @@ class LinearForce:
         return (u * (0.5 * self.stiffness_times(u) - self.load.to(u.dtype).reshape(-1, *([1] * (u.dim() - 1))))).sum(0)
 
     def equilibrium(self) -> torch.Tensor:
-        """A^-1 p: the minimiser of V, i.e. the mean of the invariant law in the elastic regime."""
+        """A^-1 p: the minimiser of V, i.e. the mean of the invariant law in the elastic regime.
+        Refused (NotPositiveDefiniteError naming a particle and the fix) when A is singular
+        because a piece of the body floats."""
+        if len(self.floating):
+            k = int(self.floating[0])
+            raise NotPositiveDefiniteError(
+                f"the stiffness is singular: {len(self.floating)} particle(s) (e.g. particle {k}) "
+                "belong to pieces held by no Dirichlet region and no intact bond to one (a particle "
+                "isolated by damage, a fragment, or an unsupported body), and eps = 0, so they "
+                "have rigid-body modes. Pass eps > 0 to linear_elastic (the confinement "
+                "(eps/2) u.u of seed 002 eq 3; e.g. 1e-6 times the mean diagonal of K), or "
+                "constrain or remove those particles")
         return torch.from_numpy(spd_factor(self.matrix).solve(self.load.numpy()))
 
 
+def damaged_terms(material, params: dict, delta, intact: torch.Tensor):
+    """Gram terms of the linearised stiffness at intact fractions mu (per bond): the Hessian
+    at u = 0 of the energy in ``bayespd.nonlinear`` (bond weights w -> mu w; LPS: m floored
+    as there)."""
+    intact = torch.as_tensor(intact, dtype=torch.float64)
+    if intact.shape != material.length.shape:
+        raise ValueError(f"intact needs one value per bond ({material.length.shape[0]})")
+    moduli = material._moduli(params)
+    factor = material._bond_correction(moduli, params, delta)
+    if not isinstance(material, LPS):
+        return [(g, data, w * intact) for g, data, w in material._stiffness_terms(moduli, params, delta, factor)]
+    K, G = moduli["K"], moduli["G"]
+    d, cG = material.dim, _C_DEV[material.dim]
+    w0 = material.bond_weight(params, delta)
+    w, L, end = w0 * intact, material.length, material._end_bond
+    m = torch.maximum(material._family_sum(w[end] * L[end] ** 2 * material._end_volume),
+                      M_FLOOR * material.weighted_volume(w0))
+    V, i, j = material.volume, material._i, material._j
+    s = V * (material.kappa(K, G) - cG * G / d**2)
+    k_b = factor * cG * w * V[i] * V[j] * (G[i] / m[i] + G[j] / m[j])
+    g = material._dilatation_vectors(w, m)
+    return [(material._extension, material._extension_data, k_b), (material._dilatation, g.reshape(-1), s)]
+
+
+def floating_particles(bonds, intact, fixed: np.ndarray) -> np.ndarray:
+    """Indices of the particles in pieces of the graph of bonds with intact fraction above
+    CONNECTED (all bonds when ``intact`` is None) that hold no ``fixed`` particle."""
+    n = len(fixed)
+    keep = np.ones(bonds.n, dtype=bool) if intact is None else np.asarray(torch.as_tensor(intact) > CONNECTED)
+    graph = sp.coo_matrix((np.ones(int(keep.sum())), (bonds.i[keep], bonds.j[keep])), shape=(n, n))
+    label = connected_components(graph, directed=False)[1]
+    anchored = np.zeros(label.max() + 1, dtype=bool)
+    anchored[label[fixed]] = True
+    return np.flatnonzero(~anchored[label])
+
+
 def linear_elastic(material, params: dict, delta, load=None, eps: float = 0.0,
-                   constraints=None) -> LinearForce:
+                   constraints=None, intact=None) -> LinearForce:
     """The linearised elastic force of ``material`` with confinement eps (seed 002 eq 3).
 
     ``load`` is nodal forces (N, dim). With ``constraints`` (``boundary.Constraints``) the
     state is the free dofs and prescribed displacements enter the load as -K_fc u_c;
     without, the state is all N*dim dofs (node-major) and eps > 0 removes the rigid modes.
+    ``intact``: per-bond intact fractions of a damage state (``damaged_terms``). With eps = 0
+    the particles of unsupported pieces are recorded in ``floating`` (a singular A is fine for
+    explicit dynamics; ``LinearForce.equilibrium`` refuses it).
     """
     if not eps >= 0:
         raise ValueError(f"the confinement eps must be >= 0, got {eps}")
-    values = material.numeric_stiffness(params, delta)
+    if intact is None:
+        values = material.numeric_stiffness(params, delta)
+    else:
+        with torch.no_grad():
+            values = numeric_values(material.pattern, damaged_terms(material, params, delta, intact))
     n_all = material.pattern.n
     p = torch.zeros(n_all) if load is None else torch.as_tensor(load, dtype=torch.float64).reshape(-1)
     if p.shape != (n_all,):
@@ -73,7 +136,11 @@ def linear_elastic(material, params: dict, delta, load=None, eps: float = 0.0,
             u_c = constraints.prescribed.reshape(-1).numpy()
             p = p - torch.from_numpy(material.pattern.matrix(values) @ u_c)
         p = constraints.free(p)
-    return LinearForce(K + eps * sp.identity(K.shape[0], format="csr"), p)
+    floating = None
+    if eps == 0:
+        fixed = np.zeros(material.particles.n, dtype=bool) if constraints is None else constraints.fixed_particles
+        floating = floating_particles(material.bonds, intact, fixed)
+    return LinearForce(K + eps * sp.identity(K.shape[0], format="csr"), p, floating)
 
 
 def as_matvec(operator):
@@ -95,10 +162,11 @@ def largest_eigenvalue(matvec, n: int, tol: float = 1e-8) -> float:
 
 def hessian_operator(force, u: torch.Tensor, h: float | None = None):
     """v -> (f(u) - f(u + h v)) / h: the Hessian of V at u by a forward difference (exact
-    for a linear force), for stability limits when no operator is given."""
+    for a linear force), for stability limits when no operator is given; the default h,
+    eps^(3/8) (1.3e-6 in float64, 2.5e-3 in float32), keeps the rounding error eps / h small."""
     u = u.detach().reshape(u.shape[0], -1)[:, 0]
     f0 = force(u)
-    h = h or 1e-6 * max(1.0, float(u.abs().max()))
+    h = h or torch.finfo(u.dtype).eps ** 0.375 * max(1.0, float(u.abs().max()))
 
     def matvec(v):
         v = torch.as_tensor(np.asarray(v), dtype=u.dtype)

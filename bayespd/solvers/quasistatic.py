@@ -33,35 +33,16 @@ from functools import cached_property
 import numpy as np
 import scipy.sparse as sp
 import torch
-from scipy.sparse.csgraph import connected_components
 
 from bayespd.assembly import numeric_values
 from bayespd.boundary import Constraints
 from bayespd.damage import DamageODE, damage_index
-from bayespd.materials import _C_DEV, BondBased
-from bayespd.nonlinear import M_FLOOR, NonlinearBonds
+from bayespd.materials import BondBased
+from bayespd.nonlinear import NonlinearBonds
+from bayespd.solvers.linear import damaged_terms, floating_particles
 from bayespd.sparse import ConvergenceError, NotPositiveDefiniteError
 
-CONNECTED = 1e-6  # bonds with a smaller intact fraction no longer hold a piece in place
 MECHANISM_SHIFT = 1e-8  # relative diagonal shift of a singular tangent (see LoadedBody.tangent)
-
-
-def lps_damaged_terms(material, params: dict, delta, intact: torch.Tensor):
-    """Gram terms of the linearised LPS stiffness at intact fractions mu: the Hessian at u = 0
-    of the LPS energy in ``bayespd.nonlinear`` (bond weights w -> mu w, m floored as there)."""
-    moduli = material._moduli(params)
-    factor = material._bond_correction(moduli, params, delta)
-    K, G = moduli["K"], moduli["G"]
-    d, cG = material.dim, _C_DEV[material.dim]
-    w0 = material.bond_weight(params, delta)
-    w, L, end = w0 * intact, material.length, material._end_bond
-    m = torch.maximum(material._family_sum(w[end] * L[end] ** 2 * material._end_volume),
-                      M_FLOOR * material.weighted_volume(w0))
-    V, i, j = material.volume, material._i, material._j
-    s = V * (material.kappa(K, G) - cG * G / d**2)
-    k_b = factor * cG * w * V[i] * V[j] * (G[i] / m[i] + G[j] / m[j])
-    g = material._dilatation_vectors(w, m)
-    return [(material._extension, material._extension_data, k_b), (material._dilatation, g.reshape(-1), s)]
 
 
 class LoadedBody:
@@ -124,13 +105,9 @@ class LoadedBody:
         free = self.constraints.free_dofs
         if self.eps > 0:
             return free
-        keep = np.asarray(torch.as_tensor(intact) > CONNECTED)
-        n = self.particles.n
-        graph = sp.coo_matrix((np.ones(int(keep.sum())), (self.bonds.i[keep], self.bonds.j[keep])), shape=(n, n))
-        label = connected_components(graph, directed=False)[1]
-        anchored = np.zeros(label.max() + 1, dtype=bool)
-        anchored[label[self._fixed]] = True
-        return free[anchored[label[free // self.particles.dim]]]
+        floating = np.zeros(self.particles.n, dtype=bool)
+        floating[floating_particles(self.bonds, intact, self._fixed)] = True
+        return free[~floating[free // self.particles.dim]]
 
     @property
     def geometric(self) -> bool:
@@ -179,7 +156,7 @@ class LoadedBody:
         """Values of T on the material's pattern."""
         intact = torch.as_tensor(intact)
         if not self.geometric:
-            terms = lps_damaged_terms(self.material, self.params, self.delta, intact)
+            terms = damaged_terms(self.material, self.params, self.delta, intact)
             return numeric_values(self.material.pattern, terms).numpy().copy()
         d = self.particles.dim
         y, r = self.kinematics.deformed(torch.zeros(self.particles.n, d) if u is None else u)

@@ -1,0 +1,89 @@
+"""Explicit dynamics and Langevin throughput: velocity Verlet steps per second and time per
+particle-step for a 2D bond-based (PMB, plane stress) plate with the geometrically exact force
+of ``bayespd.nonlinear`` (float64 and float32), and overdamped Langevin steps per second
+(seed 002 eq 4; Euler-Maruyama and the semi-implicit theta = 1 scheme, linearised force,
+white noise, one chain).
+
+Each timing is the best of ``--repeat`` runs of ``--steps`` steps after a warm-up (the machine
+is shared: best-of-N is the least disturbed run); the load average at the start is printed.
+
+    python benchmarks/dynamics.py [--sizes 10000 100000] [--m 3] [--threads 2] [--steps 50] [--repeat 5]
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import time
+
+import torch
+
+
+def best(f, repeat: int) -> float:
+    f()
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        f()
+        times.append(time.perf_counter() - t0)
+    return min(times)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", type=int, nargs="+", default=[10000, 100000])
+    parser.add_argument("--m", type=float, default=3.0)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--steps", type=int, default=50)
+    parser.add_argument("--repeat", type=int, default=5)
+    parser.add_argument("--langevin-size", type=int, default=10000)
+    args = parser.parse_args()
+
+    import bayespd as bp
+    from bayespd.nonlinear import NonlinearBonds
+    from bayespd.solvers import Langevin, critical_time_step, linear_elastic, lumped_mass, velocity_verlet, white_noise
+
+    torch.set_num_threads(args.threads)
+    print(f"threads {args.threads}, m = {args.m:g}, {args.steps} steps, best of {args.repeat}; "
+          f"load {os.getloadavg()[0]:.2f}")
+    print(f"{'particles':>9} {'bonds':>9} {'dtype':>7} {'force ms':>9} {'step ms':>8} {'steps/s':>8} {'us/pt-step':>10}")
+    dt = None
+    for size in args.sizes:
+        side = round(math.sqrt(size))
+        p = bp.grid_2d(float(side), float(side), 1.0)
+        mat = bp.BondBased(p, bp.find_bonds(p, args.m))
+        kin = NonlinearBonds(mat)
+        M = lumped_mass(p, 1.0)
+        if dt is None:  # same h, m and material at every size: the same stable step
+            dt = 0.5 * critical_time_step(linear_elastic(mat, {"K": 1.0}, args.m).matrix, M)
+        u0 = torch.zeros(p.n, 2)
+        u0[:, 0] = 1e-4 * torch.as_tensor(p.x[:, 1])  # a shear: every bond loaded
+        for dtype in (torch.float64, torch.float32):
+            coef = kin.at({"K": 1.0}, args.m, dtype)
+            u = u0.to(dtype)
+
+            def force(v, coef=coef, n=p.n):
+                return coef.force(v.view(n, 2)).view(-1)
+
+            t_force = best(lambda: coef.force(u), args.repeat)
+            t_run = best(lambda: velocity_verlet(force, M, u.reshape(-1), dt, args.steps), args.repeat)
+            step = t_run / args.steps
+            print(f"{p.n:>9} {mat.bonds.n:>9} {str(dtype)[6:]:>7} {1e3 * t_force:>9.2f} {1e3 * step:>8.2f} "
+                  f"{1 / step:>8.1f} {1e6 * step / p.n:>10.3f}", flush=True)
+
+    side = round(math.sqrt(args.langevin_size))
+    p = bp.grid_2d(float(side), float(side), 1.0)
+    F = linear_elastic(bp.BondBased(p, bp.find_bonds(p, args.m)), {"K": 1.0}, args.m, eps=1e-3)
+    L = Langevin(F, white_noise(1.0, F.n), 1.0, operator=F.matrix)
+    dt_em = 0.5 * L.explicit_limit()
+    u = torch.zeros(F.n)
+    print(f"\nLangevin, {p.n} particles ({F.n} dofs), linearised PMB + eps I, C = I, one chain")
+    for name, run in (("Euler-Maruyama (dt = 0.5 limit)", lambda: L.euler_maruyama(u, dt_em, args.steps, generator=0)),
+                      ("semi-implicit theta = 1 (dt = 100 limit)",
+                       lambda: L.semi_implicit(u, 200 * dt_em, args.steps, theta=1.0, generator=0))):
+        step = best(run, args.repeat) / args.steps
+        print(f"  {name:<42} {1e3 * step:8.2f} ms/step {1 / step:8.1f} steps/s {1e6 * step / p.n:8.3f} us/pt-step")
+
+
+if __name__ == "__main__":
+    main()
