@@ -1,9 +1,15 @@
-"""Tikhonov inversion recovers the moduli from noise-free same-grid data."""
+"""Tikhonov inversion (seed 000 eq 12): recovery of constants and fields, one adjoint solve per
+gradient, Hessian-vector products, the choice of psi, and refused input."""
 import numpy as np
 import pytest
+import torch
 
-from bayespd.inverse import tikhonov
+from bayespd.inverse.psi_choice import discrepancy, lcurve, lcurve_corner
+from bayespd.inverse.tikhonov import Objective, tikhonov
 from conftest import plate_scene
+from experiments.tikhonov_square import DELTA, K0, MU0, graded_moduli, square_scene
+
+TRUTH = {"K": K0, "G": MU0}
 
 
 @pytest.mark.parametrize("material", ["lps", "bond"])
@@ -27,3 +33,194 @@ def test_regularisation_pulls_towards_reference():
     strong = tikhonov(scene, y, ref, fixed={"delta": 2.2}, sigma=1e-3, psi=1e12)
     assert abs(free.params["K"] - 3000.0) < 1e-3
     np.testing.assert_allclose([strong.params["K"], strong.params["G"]], [2000.0, 1000.0], rtol=1e-3)
+
+
+@pytest.fixture(scope="module")
+def square():
+    """Seed 000 §4.1: the 11 x 11 square and its manufactured data."""
+    scene = square_scene()
+    return scene, scene.observe(scene.solve(dict(TRUTH, delta=DELTA))).detach()
+
+
+@pytest.mark.parametrize("method,hessian", [("L-BFGS-B", "exact"), ("Newton-CG", "gauss-newton"),
+                                            ("Newton-CG", "exact")])
+def test_recovers_constants_of_the_paper_square(square, method, hessian):
+    """§4.1 from (100, 100): double precision on same-model data leaves ~1e-14 (the paper: 6e-7)."""
+    scene, y = square
+    res = tikhonov(scene, y, {"K": 100.0, "G": 100.0}, fixed={"delta": DELTA}, sigma=1e-3,
+                   method=method, hessian=hessian)
+    for k, v in TRUTH.items():
+        assert abs(res.params[k] - v) / v < 1e-10, (k, res.params[k])
+    assert res.converged and len(res.history) == res.iterations
+    assert res.history[-1] < 1e-12 * res.history[0]
+
+
+@pytest.fixture(scope="module")
+def small_field():
+    """mu(x) of eq 27 on the square at h = 200 (6 x 6 particles), k(x) of eq 26 known."""
+    scene = square_scene(h=200.0, delta=600.0)
+    truth = graded_moduli(scene.particles.x)
+    y = scene.observe(scene.solve(dict(truth, delta=600.0))).detach()
+    return scene, truth, y
+
+
+def test_recovers_a_per_particle_field(small_field):
+    scene, truth, y = small_field
+    res = tikhonov(scene, y, {"G": np.full(scene.particles.n, MU0)}, fixed={"delta": 600.0, "K": truth["K"]},
+                   sigma=1e-3, method="Newton-CG", hessian="gauss-newton")
+    assert res.params["G"].shape == (scene.particles.n,)
+    np.testing.assert_allclose(res.params["G"], truth["G"].numpy(), rtol=1e-8)
+
+
+def count_solves(scene, monkeypatch):
+    """Count factorisations of K_ff and solves with the factors."""
+    counts = {"factorizations": 0, "solves": 0}
+    pattern = scene.constraints.pattern
+    factorize = pattern.factorize
+
+    def counting(*args, **kw):
+        counts["factorizations"] += 1
+        factor = factorize(*args, **kw)
+        solve = factor.solve
+
+        def counted(b):
+            counts["solves"] += 1
+            return solve(b)
+        factor.solve = counted
+        return factor
+    monkeypatch.setattr(pattern, "factorize", counting)
+    return counts
+
+
+@pytest.mark.parametrize("field", [False, True])
+def test_one_adjoint_solve_per_gradient_whatever_the_unknowns(small_field, monkeypatch, field):
+    """Each objective-and-gradient evaluation factorises once and solves twice (forward and
+    adjoint, eqs 18-19), for 2 unknowns as for 36; the final residual costs one more of each."""
+    scene, truth, y = small_field
+    counts = count_solves(scene, monkeypatch)
+    n = scene.particles.n
+    init = {"K": np.full(n, K0), "G": np.full(n, MU0)} if field else {"K": K0, "G": MU0}
+    res = tikhonov(scene, y, init, fixed={"delta": 600.0}, maxiter=3)
+    assert res.evaluations >= 3
+    assert counts == {"factorizations": res.evaluations + 1, "solves": 2 * res.evaluations + 1}
+
+
+def test_hessian_vector_product_matches_the_gradient(small_field):
+    """Taylor remainder |g(z + e v) - g(z) - e H v| = O(e^2): slope 2 in e, while dropping H v
+    leaves slope 1. At noise-free data the residual vanishes at the truth, where the Gauss-Newton
+    Hessian (with the penalty's, centred there) equals the exact one."""
+    scene, truth, y = small_field
+    n = scene.particles.n
+    rng = np.random.default_rng(0)
+    f = Objective(scene, y, {"G": np.full(n, 1.1 * MU0)}, fixed={"delta": 600.0, "K": truth["K"]},
+                  sigma=1e-3, psi=0.3, L="gradient")
+    z = f.z0 + 0.05 * rng.standard_normal(n)
+    v = rng.standard_normal(n)
+    g0, Hv = f(z)[1], f.hessp(z, v)
+    eps = np.array([1e-2, 5e-3, 2.5e-3, 1.25e-3])
+    second = [np.linalg.norm(f(z + e * v)[1] - g0 - e * Hv) for e in eps]
+    first = [np.linalg.norm(f(z + e * v)[1] - g0) for e in eps]
+    slope2, slope1 = np.polyfit(np.log(eps), np.log(second), 1)[0], np.polyfit(np.log(eps), np.log(first), 1)[0]
+    assert 1.9 < slope2 < 2.1 and 0.9 < slope1 < 1.1, (slope2, slope1)
+    kw = {"fixed": {"delta": 600.0, "K": truth["K"]}, "sigma": 1e-3, "psi": 0.3, "L": "gradient"}
+    exact = Objective(scene, y, {"G": truth["G"]}, **kw)
+    gn = Objective(scene, y, {"G": truth["G"]}, hessian="gauss-newton", **kw)
+    np.testing.assert_allclose(gn.hessp(exact.z0, v), exact.hessp(exact.z0, v), rtol=1e-8,
+                               atol=1e-10 * np.abs(exact.hessp(exact.z0, v)).max())
+
+
+@pytest.fixture(scope="module")
+def noisy_square(square):
+    scene, y = square
+    noise = 0.01 * float(y.abs().max())
+    gen = torch.Generator().manual_seed(7)
+    return scene, y + noise * torch.randn(y.shape, generator=gen), noise
+
+
+def test_discrepancy_principle_matches_the_noise_level(noisy_square):
+    """The chosen psi leaves a residual rms equal to tau times the noise sd (rtol 1e-3); the
+    sweep brackets it. tau = 1.1: this noise draw's own rms is 1.06 sd (242 entries: the
+    sample rms scatters by 1/sqrt(2 * 242) = 4.5 %), so tau = 1 has no solution here."""
+    scene, y, noise = noisy_square
+    ref = {"K": 300.0, "G": 200.0}
+    choice = discrepancy(scene, y, ref, noise=noise, tau=1.1, psis=np.logspace(-1, 5, 7),
+                         fixed={"delta": DELTA}, sigma=noise, gtol=1e-8)
+    assert choice.attained
+    assert abs(choice.result.residual_rms / (1.1 * noise) - 1) < 1e-3
+    assert choice.residual_rms[0] < 1.1 * noise < choice.residual_rms[-1]
+    with pytest.raises(ValueError, match="noise level"):
+        discrepancy(scene, y, ref, noise=None, psis=[1.0, 2.0], fixed={"delta": DELTA})
+
+
+def test_lcurve_corner_of_a_known_curve():
+    """(log rho, log eta) = (e^t, e^-t), t = log psi, is the hyperbola b = 1/a: by symmetry its
+    curvature peaks at a = b = 1, psi = 1; second-order differences on a 0.25-step grid
+    place it to O(0.25^2)."""
+    psis = np.exp(np.arange(-3.0, 3.01, 0.25) + 0.1)
+    psi, kappa = lcurve_corner(psis, np.exp(np.exp(np.log(psis))), np.exp(np.exp(-np.log(psis))))
+    assert abs(np.log(psi)) < 0.03
+    assert kappa.max() == pytest.approx(1 / np.sqrt(2), rel=0.05)  # curvature of b = 1/a at (1, 1)
+
+
+def test_lcurve_on_the_noisy_square(noisy_square):
+    """The corner lies where the misfit stops being flat: its residual stays within 10 % of the
+    unregularised fit's (the noise floor), while the strongest psi of the sweep misfits more."""
+    scene, y, noise = noisy_square
+    choice = lcurve(scene, y, {"K": 300.0, "G": 200.0}, psis=np.logspace(-3, 3, 7),
+                    fixed={"delta": DELTA}, sigma=noise, gtol=1e-8)
+    floor = tikhonov(scene, y, {"K": 300.0, "G": 200.0}, fixed={"delta": DELTA}, sigma=noise).residual_rms
+    assert choice.result.residual_rms < 1.1 * floor < choice.residual_rms[-1]
+
+
+def test_bad_input_is_refused(small_field):
+    scene, truth, y = small_field
+    fixed = {"delta": 600.0, "K": truth["K"]}
+    with pytest.raises(ValueError, match="psi for G must be finite and >= 0"):
+        tikhonov(scene, y, {"G": MU0}, fixed=fixed, psi=-1.0)
+    with pytest.raises(ValueError, match="one value per particle"):
+        tikhonov(scene, y, {"G": np.full(5, MU0)}, fixed=fixed)
+    with pytest.raises(ValueError, match="per-particle field"):
+        tikhonov(scene, y, {"G": MU0}, fixed=fixed, L="gradient")
+    with pytest.raises(ValueError, match="positive"):
+        tikhonov(scene, y, {"G": -MU0}, fixed=fixed)
+    with pytest.raises(ValueError, match="no bounds"):
+        tikhonov(scene, y, {"G": MU0}, fixed=fixed, method="Newton-CG", bounds={"G": (1.0, 1e4)})
+    bad = y.clone()
+    bad[3, 1] = float("nan")
+    with pytest.raises(ValueError, match="mask them out"):
+        tikhonov(scene, bad, {"G": MU0}, fixed=fixed)
+
+
+def test_nan_outside_the_mask_is_ignored(square):
+    scene, y = square
+    mask = np.ones(y.shape, dtype=bool)
+    mask[60:70, 0] = False
+    holey = y.clone()
+    holey[60:70, 0] = float("nan")
+    res = tikhonov(scene, holey, {"K": 300.0, "G": 200.0}, fixed={"delta": DELTA}, mask=mask, sigma=1e-3)
+    for k, v in TRUTH.items():
+        assert abs(res.params[k] - v) / v < 1e-10
+
+
+@pytest.mark.slow
+def test_recovers_the_graded_field_of_the_paper():
+    """§4.2 in full: mu(x) of eq 27 at all 121 cells within 0.5 % (paper: 1.2 %)."""
+    scene = square_scene()
+    truth = graded_moduli(scene.particles.x)
+    y = scene.observe(scene.solve(dict(truth, delta=DELTA))).detach()
+    res = tikhonov(scene, y, {"G": np.full(scene.particles.n, MU0)}, fixed={"delta": DELTA, "K": truth["K"]},
+                   sigma=1e-3, method="Newton-CG", hessian="gauss-newton")
+    assert np.abs(res.params["G"] / truth["G"].numpy() - 1).max() < 5e-3
+
+
+@pytest.mark.parametrize("method", ["L-BFGS-B", "trust-constr"])
+def test_bounds_that_exclude_the_truth_are_active(square, method):
+    """With G capped below its true value, G ends on the cap and K at its best value for that G
+    (a one-parameter fit with G fixed at the cap); trust-constr is the paper's trust-region
+    setting (§3.2) with bounds."""
+    scene, y = square
+    res = tikhonov(scene, y, {"K": 300.0, "G": 200.0}, fixed={"delta": DELTA}, sigma=1e-3, method=method,
+                   hessian="gauss-newton", bounds={"G": (10.0, 350.0)}, gtol=1e-10, maxiter=40)
+    best_K = tikhonov(scene, y, {"K": 300.0}, fixed={"delta": DELTA, "G": 350.0}, sigma=1e-3).params["K"]
+    assert res.params["G"] == pytest.approx(350.0, rel=1e-6)
+    assert res.params["K"] == pytest.approx(best_K, rel=1e-6)

@@ -1,22 +1,44 @@
-"""Tikhonov-regularised least squares with adjoint gradients (seed 000 eq 12).
+"""Tikhonov-regularised least squares with adjoint gradients (seed 000 eqs 12, 18-19).
 
-    J(p) = 1/2 sum_obs mask (H u(p) - y)^2 / sigma^2 + psi/2 ||log p - log p_ref||^2,
+    J(z) = 1/2 sum_obs mask (H u(p) - y)^2 / sigma^2 + sum_k psi_k/2 ||L_k (z_k - z_ref,k)||^2,
 
-minimised over log-parameters (positivity for free) with scipy's L-BFGS-B. Each gradient
-costs one forward and one adjoint solve whatever the number of parameters.
+with p = exp(z): the unknowns are log-parameters, so positivity comes for free. Each unknown is
+a scalar or a per-particle field (seed 000 eq 17: P = 121 values of mu(x) in §4.2). Seed 000
+eq 12 penalises psi/2 int k^2 (natural units, centred at zero); we centre the penalty at a
+reference and apply it to log-parameters, so psi is dimensionless and L = "gradient"
+(``bayespd.inverse.regularization``) penalises relative roughness of a field.
+
+Gradient: one forward and one adjoint solve with the same factorisation (eqs 18-19), whatever
+the number of unknowns. Hessian-vector products: double backward through the solve (the
+adjoint is itself a differentiable solve), either the exact Hessian or the Gauss-Newton one
+J_r^T J_r + psi L^T L (positive semi-definite).
+
+Methods: "L-BFGS-B" (bounds), "Newton-CG" (Hessian-vector products, no bounds) and
+"trust-constr" (Hessian-vector products and bounds).
 """
 from __future__ import annotations
 
+import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.optimize
 import torch
 
+from bayespd.inverse.regularization import regularization_operator
+
+METHODS = ("L-BFGS-B", "Newton-CG", "trust-constr")
+
 
 @dataclass
 class TikhonovResult:
+    """Estimates (floats for scalars, numpy arrays for fields) and diagnostics.
+
+    ``misfit_norm`` = ||mask (H u - y)|| and ``penalty_norm`` = ||L (z - z_ref)|| (summed over
+    unknowns in quadrature) are the two axes of the L-curve; ``history`` is J per iteration
+    (seed 000 figs 3 and 5)."""
+
     params: dict
     objective: float
     residual_rms: float
@@ -25,47 +47,215 @@ class TikhonovResult:
     wall_time_s: float
     converged: bool
     message: str
+    misfit_norm: float = math.nan
+    penalty_norm: float = math.nan
+    hessp_evaluations: int = 0
+    history: list = field(default_factory=list)
+
+
+class _Unknowns:
+    """Packs the named unknowns (scalars or per-particle fields) into one log-vector z."""
+
+    def __init__(self, init: dict, n_particles: int):
+        self.names, self.slices, self.field = list(init), {}, {}
+        start = 0
+        for k in self.names:
+            size = self._size(k, init[k], n_particles)
+            self.slices[k], self.field[k] = slice(start, start + size), np.ndim(_numpy(init[k])) == 1
+            start += size
+        self.n_particles, self.size = n_particles, start
+
+    @staticmethod
+    def _size(name, value, n):
+        shape = np.shape(_numpy(value))
+        if shape not in ((), (n,)):
+            raise ValueError(f"{name} has shape {shape}: a parameter is a scalar or a field with "
+                             f"one value per particle, shape ({n},)")
+        return 1 if shape == () else n
+
+    def log(self, values: dict, what: str) -> np.ndarray:
+        """z from natural values (scalars broadcast over a field); refuses non-positive values."""
+        z = np.empty(self.size)
+        for k in self.names:
+            self._size(k, values[k], self.n_particles)
+            v = np.broadcast_to(_numpy(values[k]), (self.slices[k].stop - self.slices[k].start,))
+            if not (np.all(np.isfinite(v)) and np.all(v > 0)):
+                raise ValueError(f"the {what} of {k} must be finite and positive (unknowns are "
+                                 "log-parameters)")
+            z[self.slices[k]] = np.log(v)
+        return z
+
+    def params(self, z) -> dict:
+        """Natural values: tensors of shape () or (N,) (numpy z gives floats and arrays)."""
+        if isinstance(z, torch.Tensor):
+            return {k: torch.exp(z[s]) if self.field[k] else torch.exp(z[s][0]) for k, s in self.slices.items()}
+        return {k: np.exp(z[s]) if self.field[k] else float(np.exp(z[s][0])) for k, s in self.slices.items()}
+
+
+def _numpy(v) -> np.ndarray:
+    return v.detach().cpu().numpy() if isinstance(v, torch.Tensor) else np.asarray(v, dtype=float)
+
+
+def _per_unknown(value, names, what, default):
+    """One value for every unknown, or a dict by unknown (``default`` where it has none)."""
+    if isinstance(value, dict):
+        extra = set(value) - set(names)
+        if extra:
+            raise ValueError(f"{what} names unknowns that are not estimated: {sorted(extra)}")
+        return {k: value.get(k, default) for k in names}
+    return dict.fromkeys(names, value)
+
+
+class Objective:
+    """J(z) of the module docstring on log-parameters z, its gradient (one forward and one
+    adjoint solve) and Hessian-vector products; the arguments are those of :func:`tikhonov`."""
+
+    def __init__(self, scene, y, init: dict, *, fixed=None, mask=None, sigma: float = 1.0, psi=0.0,
+                 ref: dict | None = None, L=None, hessian: str = "exact"):
+        if hessian not in ("exact", "gauss-newton"):
+            raise ValueError("hessian must be 'exact' or 'gauss-newton'")
+        fixed = dict(fixed or {})
+        if set(init) & set(fixed):
+            raise ValueError("a parameter cannot be both estimated and fixed")
+        if not init:
+            raise ValueError("init is empty: name at least one parameter to estimate")
+        if not (math.isfinite(sigma) and sigma > 0):
+            raise ValueError(f"sigma must be finite and positive, got {sigma}")
+        particles = scene.particles
+        self.unknowns = unknowns = _Unknowns(init, particles.n)
+        names = unknowns.names
+        if ref is not None and set(ref) != set(names):
+            raise ValueError(f"ref must give every estimated parameter {names}, got {sorted(ref)}")
+        self.psi = _per_unknown(psi, names, "psi", 0.0)
+        for k, v in self.psi.items():
+            if v is None or not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"psi for {k} must be finite and >= 0, got {v}: psi weights the "
+                                 "regularisation (0 switches it off)")
+        specs = _per_unknown(L, names, "L", None)
+        self.ops = {k: regularization_operator(specs[k], k, unknowns.slices[k].stop - unknowns.slices[k].start,
+                                               particles) for k in names}
+        self.z0 = unknowns.log(init, "starting value")
+        self.z_ref = torch.as_tensor(unknowns.log(ref if ref is not None else init, "reference"))
+        y = torch.as_tensor(y, dtype=torch.float64)
+        if mask is None and scene.observation is not None:
+            mask = scene.observation.mask
+        w = torch.ones_like(y) if mask is None else torch.as_tensor(np.asarray(mask), dtype=y.dtype)
+        if w.shape != y.shape:
+            raise ValueError(f"mask must have the shape of y {tuple(y.shape)}, got {tuple(w.shape)}")
+        if not bool(torch.all(torch.isfinite(y[w > 0]))):
+            raise ValueError("observations contain NaN or inf where the mask is true: mask them out")
+        self.y = torch.where(w > 0, y, torch.zeros(()))  # NaN * 0 is NaN: clear unobserved entries
+        self.w, self.sigma, self.scene, self.fixed, self.hessian = w, sigma, scene, fixed, hessian
+        self.evaluations = self.hessp_evaluations = 0
+        self.last = {}
+
+    def residual(self, zt: torch.Tensor) -> torch.Tensor:
+        """mask (H u - y) / sigma at log-parameters zt."""
+        params = dict(self.fixed, **self.unknowns.params(zt))
+        return (self.scene.observe(self.scene.solve(params)) - self.y) * self.w / self.sigma
+
+    def penalty_terms(self, zt: torch.Tensor) -> dict:
+        out = {}
+        for k, s in self.unknowns.slices.items():
+            d = zt[s] - self.z_ref[s]
+            out[k] = d if self.ops[k] is None else self.ops[k] @ d
+        return out
+
+    def penalty(self, zt: torch.Tensor) -> torch.Tensor:
+        return sum(0.5 * self.psi[k] * (t**2).sum() for k, t in self.penalty_terms(zt).items())
+
+    def __call__(self, z: np.ndarray):
+        """(J, grad J) at z: one factorisation, one forward and one adjoint solve."""
+        self.evaluations += 1
+        zt = torch.tensor(z, requires_grad=True)
+        J = 0.5 * (self.residual(zt) ** 2).sum() + self.penalty(zt)
+        (g,) = torch.autograd.grad(J, zt)
+        self.last = {"z": np.array(z, copy=True), "J": float(J.detach())}
+        if self.evaluations == 1:
+            self.first_grad_norm = float(g.norm())
+        return float(J.detach()), g.numpy()
+
+    def gradient_norm(self, z: np.ndarray) -> float:
+        """|grad J| at z, not counted as an optimiser evaluation."""
+        n = self.evaluations
+        g = self(z)[1]
+        self.evaluations = n
+        return float(np.linalg.norm(g))
+
+    def hessp(self, z: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """H v, H the exact Hessian (double backward through the solve) or Gauss-Newton's."""
+        self.hessp_evaluations += 1
+        zt = torch.tensor(z, requires_grad=True)
+        vt = torch.as_tensor(np.asarray(v, dtype=np.float64))
+        if self.hessian == "exact":
+            J = 0.5 * (self.residual(zt) ** 2).sum() + self.penalty(zt)
+            (g,) = torch.autograd.grad(J, zt, create_graph=True)
+            return torch.autograd.grad(g @ vt, zt)[0].numpy()
+        # Gauss-Newton: J_r^T (J_r v) + (penalty Hessian) v; J_r v by the double-backward trick
+        r = self.residual(zt)
+        a = torch.zeros_like(r, requires_grad=True)
+        (Jta,) = torch.autograd.grad(r, zt, grad_outputs=a, create_graph=True)
+        (Jv,) = torch.autograd.grad(Jta @ vt, a, retain_graph=True)
+        (JtJv,) = torch.autograd.grad(r, zt, grad_outputs=Jv)
+        zp = torch.tensor(z, requires_grad=True)
+        (gp,) = torch.autograd.grad(self.penalty(zp), zp, create_graph=True)
+        return (JtJv + torch.autograd.grad(gp @ vt, zp)[0]).numpy()
 
 
 def tikhonov(scene, y, init: dict, *, fixed: dict | None = None, mask=None, sigma: float = 1.0,
-             psi: float = 0.0, ref: dict | None = None, bounds: dict | None = None,
-             gtol: float = 1e-12, maxiter: int = 500) -> TikhonovResult:
+             psi=0.0, ref: dict | None = None, bounds: dict | None = None,
+             gtol: float = 1e-12, maxiter: int = 500, L=None, method: str = "L-BFGS-B",
+             hessian: str = "exact") -> TikhonovResult:
     """Estimate the parameters named in ``init`` (starting values) from observations ``y``.
 
-    ``fixed`` holds parameters kept constant (e.g. ``{"delta": 3.0}``), ``bounds`` optional
+    ``init`` values are scalars or per-particle arrays of shape (N,). ``fixed`` holds the
+    parameters kept constant (e.g. ``{"delta": 3.0}``, or a known field), ``bounds`` optional
     (low, high) per parameter in natural units, ``ref`` the regularisation centre (defaults
-    to ``init``).
+    to ``init``), ``psi`` >= 0 a scalar or one per parameter, ``L`` the regularisation
+    operator: None/"identity", "gradient" (fields) or a matrix, or a dict per parameter.
+    ``mask`` (default: the observation's own) marks observed entries; data outside it may be NaN.
+    ``method`` is one of METHODS; ``hessian`` ("exact" or "gauss-newton") is used by the
+    Hessian-based methods.
     """
-    names = list(init)
-    fixed = dict(fixed or {})
-    if set(names) & set(fixed):
-        raise ValueError("a parameter cannot be both estimated and fixed")
-    y = torch.as_tensor(y)
-    w = torch.ones_like(y) if mask is None else torch.as_tensor(mask, dtype=y.dtype)
-    if not bool(torch.all(torch.isfinite(y[w > 0]))):
-        raise ValueError("observations contain NaN or inf where the mask is true: mask them out")
-    z_ref = torch.log(torch.tensor([float((ref or init)[k]) for k in names]))
-    evaluations = 0
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    f = Objective(scene, y, init, fixed=fixed, mask=mask, sigma=sigma, psi=psi, ref=ref, L=L,
+                  hessian=hessian)
+    unknowns = f.unknowns
+    lo, hi = np.full(unknowns.size, -np.inf), np.full(unknowns.size, np.inf)
+    for k, (low, high) in (bounds or {}).items():
+        if k not in unknowns.slices:
+            raise ValueError(f"bounds given for {k}, which is not estimated")
+        if not 0 < low < high:
+            raise ValueError(f"bounds for {k} must satisfy 0 < low < high, got ({low}, {high})")
+        lo[unknowns.slices[k]], hi[unknowns.slices[k]] = np.log(low), np.log(high)
+    bounded = bool(np.isfinite(lo).any() or np.isfinite(hi).any())
+    if method == "Newton-CG" and bounded:
+        raise ValueError("Newton-CG takes no bounds: use method='trust-constr' or 'L-BFGS-B'")
+    history = []
 
-    def objective(z):
-        nonlocal evaluations
-        evaluations += 1
-        zt = torch.tensor(z, requires_grad=True)
-        params = dict(fixed, **{k: torch.exp(zt[i]) for i, k in enumerate(names)})
-        r = (scene.observe(scene.solve(params)) - y) * w / sigma
-        J = 0.5 * (r**2).sum() + 0.5 * psi * ((zt - z_ref) ** 2).sum()
-        (g,) = torch.autograd.grad(J, zt)
-        return float(J.detach()), g.numpy()
+    def callback(intermediate_result):
+        z = intermediate_result.x
+        history.append(f.last["J"] if np.array_equal(f.last.get("z"), z) else f(z)[0])
 
-    log_bounds = [tuple(np.log(bounds[k])) if bounds and k in bounds else (None, None) for k in names]
-    z0 = np.log([float(init[k]) for k in names])
+    options = {"L-BFGS-B": {"gtol": gtol, "ftol": 1e-15, "maxiter": maxiter},
+               "Newton-CG": {"xtol": gtol, "maxiter": maxiter},
+               "trust-constr": {"gtol": gtol, "xtol": 1e-14, "maxiter": maxiter}}[method]
+    extra = {} if method == "L-BFGS-B" else {"hessp": f.hessp}
+    if bounded:
+        extra["bounds"] = list(zip(lo, hi)) if method == "L-BFGS-B" else scipy.optimize.Bounds(lo, hi)
     start = time.perf_counter()
-    res = scipy.optimize.minimize(objective, z0, jac=True, method="L-BFGS-B", bounds=log_bounds,
-                                  options={"gtol": gtol, "ftol": 1e-15, "maxiter": maxiter})
+    res = scipy.optimize.minimize(f, f.z0, jac=True, method=method, callback=callback,
+                                  options=options, **extra)
     wall = time.perf_counter() - start
-    estimate = {k: float(np.exp(res.x[i])) for i, k in enumerate(names)}
     with torch.no_grad():
-        r = (scene.observe(scene.solve(dict(fixed, **estimate))) - y) * w
-    rms = float(torch.sqrt((r**2).sum() / w.sum()))
-    return TikhonovResult(estimate, float(res.fun), rms, int(res.nit), evaluations, wall,
-                          bool(res.success), str(res.message))
+        zt = torch.as_tensor(res.x)
+        r = f.residual(zt) * sigma
+        pen = math.sqrt(sum(float((t**2).sum()) for t in f.penalty_terms(zt).values()))
+    rms = float(torch.sqrt((r**2).sum() / f.w.sum()))
+    # scipy reports "precision loss" when J has reached round-off: converged if |grad J| fell
+    converged = bool(res.success) or (res.nit < maxiter
+                                      and f.gradient_norm(res.x) <= 1e-8 * f.first_grad_norm)
+    return TikhonovResult(unknowns.params(res.x), float(res.fun), rms, int(res.nit), f.evaluations,
+                          wall, converged, str(res.message), float(r.norm()), pen,
+                          f.hessp_evaluations, history)
