@@ -14,7 +14,7 @@ import xarray as xr
 from scipy import stats
 from torch.distributions import biject_to, constraints
 
-from bayespd.infer import ScaledBeta, fit, load, save, summary, to_inference_data
+from bayespd.infer import ChainDivergedError, ScaledBeta, fit, load, save, summary, to_inference_data
 from bayespd.sparse import NotPositiveDefiniteError
 
 N, PRIOR_SD, LOW, HIGH = 50, 10.0, 0.5, 2.0
@@ -55,7 +55,7 @@ def model(y=None):
 
 @pytest.fixture(scope="module")
 def nuts(y):
-    return fit(model, {"y": y}, num_samples=DRAWS, num_warmup=DRAWS, progress=False)
+    return fit(model, {"y": y}, num_samples=DRAWS, num_warmup=DRAWS, num_chains=2, progress=False)
 
 
 def check_moments(draws, mean, sd, mean_tol):
@@ -217,8 +217,8 @@ def test_not_positive_definite_is_a_divergence(y, exact):
         with pyro.plate("obs", N):
             pyro.sample("y", dist.Normal(mu, 1.0), obs=y)
 
-    tree = fit(fragile, {"y": y}, num_samples=DRAWS, num_warmup=DRAWS, progress=False,
-               init_values={"mu": mean})
+    tree = fit(fragile, {"y": y}, num_samples=DRAWS, num_warmup=DRAWS, num_chains=2,
+               progress=False, init_values={"mu": mean})
     assert int(tree["sample_stats"]["diverging"].sum()) > 0
     mu = tree["posterior"]["mu"]
     assert float(abs(mu - mean).max()) < bound
@@ -231,7 +231,7 @@ def test_not_positive_definite_is_a_divergence(y, exact):
 
 def test_fit_rejects_unknown_method(y):
     with pytest.raises(ValueError, match="method"):
-        fit(model, {"y": y}, method="hmc")
+        fit(model, {"y": y}, method="gibbs")
 
 
 def test_scaled_beta():
@@ -255,3 +255,100 @@ def test_scaled_beta():
     assert d.expand([3]).sample().shape == (3,)
     with pytest.raises(ValueError):
         ScaledBeta(2.0, 1.0)
+
+
+def test_hmc_recovers_conjugate_posterior(y, exact):
+    tree = fit(model, {"y": y}, "hmc", trajectory_length=1.0, num_samples=DRAWS, num_warmup=150,
+               num_chains=2, chains="sequential", progress=False)
+    mu = tree["posterior"]["mu"]
+    check_moments(mu, *exact, mean_tol=4 * mcse(mu))
+    st = tree["sample_stats"]
+    assert set(st.data_vars) == {"lp", "energy", "step_size", "n_steps", "diverging", "acceptance_rate"}
+    # steps = trajectory length / step size, the step size fixed after warmup
+    steps = (1.0 / st["step_size"]).astype(int).clip(min=1)
+    assert (st["n_steps"] == steps).all() and float(st["acceptance_rate"].mean()) > 0.6
+    assert tree.attrs["method"] == "hmc"
+
+
+def test_chain_that_always_diverges_is_refused_with_the_fix(y):
+    start = 1.0
+
+    def stuck(y):  # the stiffness "fails" everywhere but at the start
+        mu = pyro.sample("mu", dist.Normal(0.0, PRIOR_SD))
+        if float(mu.detach()) != start:
+            raise NotPositiveDefiniteError("stiffness is not positive definite")
+        with pyro.plate("obs", N):
+            pyro.sample("y", dist.Normal(mu, 1.0), obs=y)
+
+    with pytest.raises(ChainDivergedError, match="chain 0 diverged.*[Rr]eparametrise.*tighten the "
+                       "priors.*dense mass matrix"):
+        fit(stuck, {"y": y}, num_samples=5, num_warmup=5, num_chains=1, init_values={"mu": start},
+            progress=False)
+
+
+def test_summary_warns_on_low_ess_and_names_the_thresholds(y):
+    short = fit(model, {"y": y}, num_samples=30, num_warmup=30, num_chains=2,
+                chains="sequential", progress=False)
+    with pytest.warns(UserWarning, match=r"bulk ESS < 200 \(100 per chain\)"):
+        summary(short, var_names=["mu", "h"])
+
+
+def test_bad_data_is_refused_before_sampling(y):
+    bad = y.clone()
+    bad[3] = float("nan")
+    with pytest.raises(ValueError, match=r"1 NaN/inf entries outside the mask \(first at index \(3,\)\)"
+                       r".*model_data"):
+        fit(model, {"y": bad}, "svi", progress=False)
+    with pytest.raises(ValueError, match=r"has shape \(49,\) but the model predicts \(50,\)"):
+        fit(model, {"y": y[:49]}, "svi", progress=False)
+    with pytest.raises(ValueError, match="data has no 'z' entry"):
+        fit(model, {"y": y}, "svi", observed="z", progress=False)
+
+
+@pytest.fixture(scope="module")
+def plate():
+    import bayespd as bp
+    from models.elastic_plate import elastic_plate
+
+    p = bp.grid_2d(8.0, 4.0, 1.0)
+    scene = bp.Scene(bp.LPS(p, bp.find_bonds(p, 2.5)), [bp.Dirichlet.layer(p, "left", 2.5)],
+                     [bp.Load(p.layer("right", 1.0), (30.0, 10.0))], bp.Observation(p, p.x[p.x[:, 0] > 3]))
+    with torch.no_grad():
+        u = scene.observe(scene.solve({"K": 3000.0, "G": 1400.0, "delta": 2.0}))
+    return scene, lambda **priors: elastic_plate(scene, {"K": 3000.0, "G": 1400.0}, 1e-3, priors), u
+
+
+def test_priors_outside_the_physical_range_and_wrong_shapes_are_refused(plate):
+    scene, make, u = plate
+    data = {"y": u}
+    with pytest.raises(ValueError, match=r"prior of K has support \[-inf, inf\].*negative moduli.*LogNormal"):
+        fit(make(K=dist.Normal(3000.0, 500.0)), data, "laplace", scene=scene, progress=False)
+    with pytest.raises(ValueError, match=r"prior of delta has support \[0.5, 2.5\].*h = 1.*ScaledBeta\(1, 2.5\)"):
+        fit(make(delta=ScaledBeta(0.5, 2.5)), data, "laplace", scene=scene, progress=False)
+    with pytest.raises(ValueError, match=r"shape \(.*\) but the scene observes .* Observation"):
+        fit(make(), {"y": u[:-1]}, "laplace", scene=scene, progress=False)
+    missing = u.clone()
+    missing[0, 1] = float("nan")
+    with pytest.raises(ValueError, match="under the mask"):
+        fit(make(), {"y": missing, "mask": torch.isfinite(missing)}, "laplace", scene=scene, progress=False)
+
+
+def test_scene_layout_constant_data_and_loo(plate):
+    """Given a scene: observations on (point, component) with x/y coords, the mask and geometry
+    in constant_data, masked log-likelihood entries 0 and az.loo on the pointwise values."""
+    scene, make, u = plate
+    import bayespd as bp
+
+    y = u + 1e-3 * torch.randn(u.shape, generator=torch.Generator().manual_seed(2))
+    y[1, 0] = float("nan")
+    tree = fit(make(), bp.model_data(y), "laplace", scene=scene, num_samples=200, progress=False)
+    assert tree["observed_data"]["y"].dims == ("point", "component")
+    assert list(tree["observed_data"]["component"].values) == ["x", "y"]
+    const = tree["constant_data"]
+    assert const["mask"].dims == ("point", "component") and not bool(const["mask"][1, 0])
+    np.testing.assert_array_equal(const["particle_x"], scene.particles.x)
+    np.testing.assert_array_equal(const["observation_points"], scene.observation.points)
+    ll = tree["log_likelihood"]["y"]
+    assert ll.dims == ("chain", "draw", "point", "component") and (ll[:, :, 1, 0] == 0).all()
+    loo = az.loo(to_inference_data(tree), pointwise=True)
+    assert np.isfinite(loo.elpd_loo) and loo.loo_i.size == y.numel()

@@ -1,11 +1,13 @@
 """Inference results as an ``xarray.DataTree`` with ArviZ group names, NetCDF I/O, summary.
 
 Groups: ``posterior``, ``sample_stats``, ``log_likelihood``, ``posterior_predictive``
-(variables with leading dims ``(chain, draw)``) and ``observed_data``. Run settings live in
+(variables with leading dims ``(chain, draw)``), ``observed_data`` and ``constant_data``
+(the other model inputs, e.g. the mask and observation points). Run settings live in
 the root attributes (numbers and strings; dict-like settings as JSON strings), so they
 survive a NetCDF round trip.
 """
 
+import json
 import os
 import warnings
 
@@ -16,18 +18,21 @@ import xarray as xr
 from bayespd.atomic import atomic_path
 
 SAMPLE_DIMS = ("chain", "draw")
+DATA_GROUPS = ("observed_data", "constant_data")
+# Vehtari, Gelman, Simpson, Carpenter & Buerkner (2021), the thresholds ArviZ and Stan use
+R_HAT_MAX, ESS_PER_CHAIN_MIN, BFMI_MIN = 1.01, 100, 0.3
 
 
 def build_tree(groups, attrs=None, dims=None, coords=None) -> xr.DataTree:
     """DataTree from ``{group: {variable: array}}`` (or ``{group: Dataset}``, kept as is).
 
-    Arrays start with ``(chain, draw)`` except in ``observed_data``. The remaining axes of
+    Arrays start with ``(chain, draw)`` except in ``observed_data`` and ``constant_data``. The remaining axes of
     variable ``v`` are named ``dims[v]`` (padded or cut to length) or ``v_dim_0``, ...;
     ``coords`` supplies coordinate values for those dims.
     """
     nodes = {"/": xr.Dataset(attrs=attrs or {})}
     for group, arrays in groups.items():
-        sample_dims = () if group == "observed_data" else SAMPLE_DIMS
+        sample_dims = () if group in DATA_GROUPS else SAMPLE_DIMS
         if not isinstance(arrays, xr.Dataset):
             arrays = _dataset(arrays, sample_dims, dims or {}, coords or {})
         nodes[group] = arrays
@@ -66,16 +71,43 @@ def load(path) -> xr.DataTree:
 
 
 def summary(tree: xr.DataTree, var_names=None):
-    """``az.summary`` of the posterior (mean, sd, 90 % HDI, MCSE, bulk/tail ESS, r_hat).
-
-    Warns (``UserWarning``) when some r_hat exceeds 1.05 or the sampler diverged.
+    """``az.summary`` of the posterior (mean, sd, 90 % HDI, MCSE of mean and sd, bulk/tail
+    ESS, r_hat) with a ``UserWarning`` for each failed diagnostic of an MCMC fit, by the
+    thresholds of Vehtari et al. (2021) that ArviZ and Stan use: r_hat > 1.01, bulk or tail
+    ESS < 100 per chain, any divergent transition, E-BFMI < 0.3 in some chain, and draws that
+    hit the maximum tree depth. SVI and Laplace draws are independent: only divergences (none)
+    would apply, so they get no warnings.
     """
     df = az.summary(to_inference_data(tree), var_names=var_names, hdi_prob=0.9)
-    if (df["r_hat"] > 1.05).any():
-        bad = ", ".join(df.index[df["r_hat"] > 1.05])
-        warnings.warn(f"r_hat > 1.05 for {bad}: chains have not mixed", UserWarning)
-    if "sample_stats" in tree.children and "diverging" in tree["sample_stats"]:
-        n = int(tree["sample_stats"]["diverging"].sum())
-        if n:
-            warnings.warn(f"{n} divergent transitions: the posterior may be biased", UserWarning)
+    if tree.attrs.get("method") in ("nuts", "hmc"):
+        for message in _diagnostic_failures(tree, df):
+            warnings.warn(message, UserWarning, stacklevel=2)
     return df
+
+
+def _diagnostic_failures(tree, df):
+    chains = tree["posterior"].sizes["chain"]
+    if (df["r_hat"] > R_HAT_MAX).any():
+        bad = ", ".join(df.index[df["r_hat"] > R_HAT_MAX])
+        yield f"r_hat > {R_HAT_MAX} for {bad}: the chains have not mixed; run longer warmup or more draws"
+    ess_min = ESS_PER_CHAIN_MIN * chains
+    for kind in ("bulk", "tail"):
+        low = df[f"ess_{kind}"] < ess_min
+        if low.any():
+            yield (f"{kind} ESS < {ess_min} (100 per chain) for {', '.join(df.index[low])}: "
+                   "too few effective draws for reliable intervals; draw more")
+    st = tree["sample_stats"] if "sample_stats" in tree.children else None
+    if st is None:
+        return
+    if "diverging" in st and (n := int(st["diverging"].sum())):
+        yield (f"{n} divergent transitions: the posterior may be biased; raise target_accept, "
+               "use a dense mass matrix or reparametrise")
+    if "energy" in st:
+        bfmi = az.bfmi(st["energy"].values)
+        if (bfmi < BFMI_MIN).any():
+            yield (f"E-BFMI {np.round(bfmi, 2).tolist()} < {BFMI_MIN}: the momentum resampling "
+                   "explores the energy poorly; reparametrise or use a dense mass matrix")
+    depth = json.loads(tree.attrs.get("settings", "{}")).get("max_tree_depth")
+    if "tree_depth" in st and depth is not None and (st["tree_depth"] >= depth).any():
+        yield (f"{int((st['tree_depth'] >= depth).sum())} draws hit max_tree_depth {depth}: "
+               "trajectories were cut short; use a dense mass matrix or raise max_tree_depth")

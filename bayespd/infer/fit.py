@@ -1,252 +1,164 @@
-"""Fit a Pyro model by NUTS or full-rank Gaussian SVI; results as an ArviZ-style DataTree."""
+"""``fit``: one entry point for NUTS, HMC, SVI and Laplace; results as an ArviZ-style DataTree."""
 
 import json
 import time
-from collections import defaultdict
 from datetime import datetime, timezone
+from pathlib import Path
 
 import numpy as np
 import pyro
 import torch
-import xarray as xr
-from pyro import poutine
-from pyro.infer import MCMC, NUTS, SVI, Trace_ELBO
-from pyro.infer.autoguide import AutoMultivariateNormal
-from pyro.infer.autoguide.initialization import InitMessenger, init_to_median, init_to_value
-from pyro.ops.integrator import register_exception_handler
-from pyro.poutine.util import site_is_subsample
-from pyro.optim import ClippedAdam
-from torch.distributions import biject_to
-from tqdm.auto import tqdm
+from pyro.infer.autoguide.initialization import init_to_median, init_to_value
 
-from bayespd.materials import NonFiniteParameterError
-from bayespd.sparse import NotPositiveDefiniteError
-
+from . import laplace as _laplace
+from .checks import check_data, check_observed_shape, check_priors
 from .datatree import build_tree
+from .mcmc import ChainSpec, run_chains
+from .predictive import replay
+from .space import Unconstrained, init_trace
+from .svi import run_svi
 
-
-class _RecordingNUTS(NUTS):
-    """NUTS that records per-draw statistics and counts potential-energy evaluations.
-
-    After warmup, every ``sample`` appends to ``self.stats``: ``lp`` (minus the potential
-    energy, i.e. the log joint density on the unconstrained space, log-Jacobians included),
-    ``energy`` (Hamiltonian at the start of the trajectory), ``step_size``, ``tree_depth``
-    (number of trajectory doublings; at most ``2**tree_depth - 1`` leapfrog steps),
-    ``n_steps`` (leapfrog steps), ``diverging`` and ``acceptance_rate`` (mean Metropolis
-    acceptance probability over the trajectory, the quantity step-size adaptation targets).
-    """
-
-    def __init__(self, model, seed_covariance=None, **kwargs):
-        super().__init__(model, **kwargs)
-        self.seed_covariance = seed_covariance
-        self.stats = defaultdict(list)
-        self.num_grad_evals = 0
-
-    def _initialize_model_properties(self, model_args, model_kwargs):
-        super()._initialize_model_properties(model_args, model_kwargs)
-        potential_fn = self.potential_fn
-
-        def counted(z):
-            self.num_grad_evals += 1
-            return potential_fn(z)
-
-        self.potential_fn = counted
-
-    def _initialize_adapter(self):
-        """Start from ``seed_covariance`` (unconstrained space, sites in sorted order) as the
-        inverse mass matrix, then find a step size for it; adaptation continues as usual."""
-        super()._initialize_adapter()
-        if self.seed_covariance is not None:
-            names = tuple(sorted(self.initial_params))
-            self.mass_matrix_adapter.inverse_mass_matrix = {names: self.seed_covariance}
-            self._adapter.reset_step_size_adaptation(self._initial_params)
-
-    def _sample_r(self, name):
-        r, r_unscaled = super()._sample_r(name)
-        self._energy = float(self._kinetic_energy(r_unscaled) + self._potential_energy_last)
-        return r, r_unscaled
-
-    def _build_tree(self, z, r, z_grads, log_slice, direction, tree_depth, energy_current):
-        self._depth = max(self._depth, tree_depth + 1)
-        return super()._build_tree(z, r, z_grads, log_slice, direction, tree_depth, energy_current)
-
-    def _build_basetree(self, *args):
-        tree = super()._build_basetree(*args)
-        self._n_steps += 1
-        self._sum_accept += float(tree.sum_accept_probs)
-        self._diverging |= bool(tree.diverging)
-        return tree
-
-    def sample(self, params):
-        self._depth, self._n_steps, self._sum_accept, self._diverging = 0, 0, 0.0, False
-        z = super().sample(params)
-        if self._t > self._warmup_steps:
-            s = self.stats
-            s["lp"].append(-float(self._potential_energy_last))
-            s["energy"].append(self._energy)
-            s["step_size"].append(float(self.step_size))
-            s["tree_depth"].append(self._depth)
-            s["n_steps"].append(self._n_steps)
-            s["diverging"].append(self._diverging)
-            s["acceptance_rate"].append(self._sum_accept / max(self._n_steps, 1))
-        return z
-
-
-def _max_plate_nesting(model, data, init):
-    """As Pyro guesses it, but running the model at the initial values, not at prior draws
-    (which may make the model raise)."""
-    with poutine.block():
-        trace = poutine.trace(InitMessenger(init)(model)).get_trace(**data)
-    dims = [frame.dim for site in trace.nodes.values() if site["type"] == "sample"
-            for frame in site["cond_indep_stack"] if frame.vectorized]
-    return -min(dims) if dims else 0
+METHODS = ("nuts", "hmc", "svi", "laplace")
 
 
 def unconstrained_covariance(model, data, tree) -> torch.Tensor:
     """Covariance of a fit's posterior draws on Pyro's unconstrained space, latent sites in
-    sorted order: a seed for NUTS's dense mass matrix (e.g. from a quick SVI fit)."""
-    with poutine.block():
-        trace = poutine.trace(model).get_trace(**data)
-    columns = []
-    for name in sorted(n for n, s in trace.nodes.items() if s["type"] == "sample"
-                       and not s["is_observed"] and not site_is_subsample(s)):
-        draws = torch.as_tensor(tree["posterior"][name].values).reshape(-1, trace.nodes[name]["value"].numel())
-        columns.append(biject_to(trace.nodes[name]["fn"].support).inv(draws))
-    return torch.cov(torch.cat(columns, dim=1).T)
+    sorted order: a seed for the dense mass matrix (e.g. from a quick SVI fit)."""
+    space = Unconstrained(model, data, init_to_median)
+    post = tree["posterior"]
+    draws = {k: torch.as_tensor(post[k].values).reshape(-1, *space.shapes[k]) for k in space.names}
+    return torch.cov(space.unconstrain(draws).T)
 
 
-def _run_nuts(model, data, num_samples, num_warmup, num_chains, seed, init, progress, dense_mass,
-              seed_covariance):
-    register_exception_handler(
-        "bayespd_numerical_trouble",
-        lambda e: isinstance(e, (NotPositiveDefiniteError, NonFiniteParameterError)),
-        warn_on_overwrite=False,
-    )
-    samples, stats, grad_evals = [], [], 0
-    plates = _max_plate_nesting(model, data, init)
-    for chain in range(num_chains):
-        pyro.set_rng_seed(seed + chain)
-        kernel = _RecordingNUTS(model, init_strategy=init, max_plate_nesting=plates,
-                                full_mass=dense_mass or seed_covariance is not None,
-                                seed_covariance=seed_covariance)
-        mcmc = MCMC(kernel, num_samples=num_samples, warmup_steps=num_warmup,
-                    disable_progbar=not progress)
-        mcmc.run(**data)
-        samples.append(mcmc.get_samples())
-        stats.append(kernel.stats)
-        grad_evals += kernel.num_grad_evals
-    posterior = {k: torch.stack([s[k] for s in samples]) for k in samples[0]}
-    sample_stats = {k: np.array([s[k] for s in stats]) for k in stats[0]}
-    return posterior, sample_stats, grad_evals
+def _initial(init_values):
+    if not init_values:
+        return init_to_median
+    dtype = torch.get_default_dtype()
+    values = {k: torch.as_tensor(v, dtype=dtype) for k, v in init_values.items()}
+    return init_to_value(values=values, fallback=init_to_median)
 
 
-def _run_svi(model, data, num_samples, seed, steps, lr, init, progress):
-    pyro.set_rng_seed(seed)
-    with pyro.get_param_store().scope():
-        guide = AutoMultivariateNormal(model, init_loc_fn=init)
-        optim = ClippedAdam({"lr": lr, "lrd": 0.1 ** (1 / steps)})  # lr / 10 at the end
-        svi = SVI(model, guide, optim, Trace_ELBO())
-        losses = [svi.step(**data) for _ in tqdm(range(steps), "SVI", disable=not progress)]
-        with torch.no_grad():
-            draws = [guide(**data) for _ in range(num_samples)]
-    posterior = {k: torch.stack([d[k] for d in draws])[None] for k in draws[0]}
-    return posterior, xr.Dataset({"svi_loss": ("svi_step", np.array(losses))})
+def _scene_layout(scene, data, observed, dims, coords, constant_data):
+    """Default dims/coords for observations ``(point, component)`` and the scene's geometry
+    as constant data; the user's ``dims`` / ``coords`` / ``constant_data`` take precedence."""
+    dims, coords, const = dict(dims or {}), dict(coords or {}), {}
+    for k, v in data.items():
+        if k != observed and isinstance(v, (torch.Tensor, np.ndarray)):
+            const[k] = np.asarray(v)
+            if tuple(np.shape(v)) == tuple(np.shape(data[observed])):
+                dims.setdefault(k, dims.get(observed, ["point", "component"] if scene else []))
+    if scene is not None:
+        dim = scene.particles.dim
+        dims.setdefault(observed, ["point", "component"])
+        coords.setdefault("component", ["x", "y", "z"][:dim])
+        const["particle_x"] = np.asarray(scene.particles.x)
+        dims.setdefault("particle_x", ["particle", "component"])
+        if scene.observation is not None:
+            const["observation_points"] = np.asarray(scene.observation.points)
+            dims.setdefault("observation_points", ["point", "component"])
+    const.update({k: np.asarray(v) for k, v in (constant_data or {}).items()})
+    return dims, coords, const
 
 
-def _replay(model, data, posterior, observed, progress):
-    """Run the model once per draw, conditioned on it. Returns the pointwise log-likelihood
-    of the data (mask and scale applied, masked entries 0), one replicated data set per draw
-    and the ``pyro.deterministic`` sites, each shaped ``(chain, draw, ...)``."""
-    loglik, predictive, deterministic = [], [], defaultdict(list)
-    num_chains, num_draws = next(iter(posterior.values())).shape[:2]
-    with torch.no_grad():
-        for c, d in tqdm(np.ndindex(num_chains, num_draws), "predictive",
-                         total=num_chains * num_draws, disable=not progress):
-            draw = {k: v[c, d] for k, v in posterior.items()}
-            trace = poutine.trace(poutine.condition(model, data=draw)).get_trace(**data)
-            trace.compute_log_prob(lambda name, site: name == observed)
-            site = trace.nodes[observed]
-            loglik.append(site["log_prob"])
-            predictive.append(site["fn"].sample())
-            for name, s in trace.nodes.items():
-                if s["type"] == "sample" and s["infer"].get("_deterministic"):
-                    deterministic[name].append(s["value"])
+def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, num_chains=4,
+        seed=0, chains="auto", init_values=None, init="median", dense_mass=False,
+        mass_matrix_from=None, target_accept=0.8, max_tree_depth=10, trajectory_length=None,
+        guide="mvn", svi_steps=2000, svi_lr=0.02, svi_rank=None, svi_particles=1,
+        hessian="exact", checkpoint=None, checkpoint_every=50, scene=None, constant_data=None,
+        progress=True, observed="y", dims=None, coords=None):
+    """Posterior of ``model(**data)`` as an ArviZ-style ``xarray.DataTree``.
 
-    def stack(values):
-        return torch.stack(values).reshape(num_chains, num_draws, *values[0].shape)
+    ``data[observed]`` is scored by the sample site of the same name. Input is checked first
+    (``bayespd.infer.checks``): NaN data outside (or under) ``data["mask"]``, observations of
+    the wrong shape, and, given ``scene``, priors whose support leaves the physical range.
+    Initial values: ``init_values`` (other sites at the prior median); ``init="map"`` starts
+    at the MAP found from there (L-BFGS on the unconstrained space).
 
-    return stack(loglik), stack(predictive), {k: stack(v) for k, v in deterministic.items()}
+    * ``"nuts"`` / ``"hmc"``: ``num_chains`` chains of ``num_warmup`` + ``num_samples``
+      (see ``bayespd.infer.mcmc`` for seeds, ``chains="auto" | "sequential" | "processes"``
+      and ``checkpoint=<dir>``). ``dense_mass=True`` adapts a full mass matrix;
+      ``mass_matrix_from`` seeds it with the covariance of a previous fit's draws (a DataTree,
+      e.g. a quick SVI fit) or of the Laplace approximation (``"laplace"``). NUTS uses
+      ``target_accept`` and ``max_tree_depth``; HMC integrates trajectories of length
+      ``trajectory_length`` (default 2 pi), i.e. ``trajectory_length / step_size`` leapfrog steps. A model that raises ``NotPositiveDefiniteError`` or
+      ``NonFiniteParameterError`` in a trajectory gets a divergence (proposal rejected); a
+      chain that diverges on every draw raises ``ChainDivergedError``. ``sample_stats``:
+      ``lp``, ``energy``, ``step_size``, ``n_steps``, ``diverging``, ``acceptance_rate``
+      (+ ``tree_depth`` for NUTS) per draw.
+    * ``"svi"``: ``guide`` in ``"normal" | "mvn" | "lowrank" | "flow"`` (``bayespd.infer.svi``),
+      ``svi_steps`` of decaying-rate ClippedAdam from ``svi_lr``, ``svi_particles`` ELBO samples
+      per step; ``num_samples`` guide draws as one chain. ``sample_stats``: ``svi_loss``.
+    * ``"laplace"``: MAP and ``hessian="exact" | "gauss-newton"`` (``bayespd.infer.laplace``);
+      ``num_samples`` draws of the Gaussian pushed through the constraint transforms, as one
+      chain. ``sample_stats``: the mode and covariance on the unconstrained space.
 
-
-def _numpy(arrays):
-    return {k: v.detach().cpu().numpy() for k, v in arrays.items()}
-
-
-def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, num_chains=2,
-        seed=0, svi_steps=2000, svi_lr=0.02, init_values=None, progress=True, observed="y",
-        dims=None, coords=None, dense_mass=False, mass_matrix_from=None):
-    """Sample the posterior of ``model(**data)`` and return an ArviZ-style ``xarray.DataTree``.
-
-    ``data[observed]`` is the observed tensor, scored by the sample site of the same name.
-
-    * ``"nuts"``: Pyro NUTS. The ``num_chains`` chains run one after another in this
-      process (Pyro's multi-process mode would use ``cpu_count() - 1`` workers, a single one
-      on a 2-core machine), chain ``c`` seeded with ``seed + c``. Chains start at
-      ``init_values`` (other sites at the prior median), else at the prior median. A
-      ``NotPositiveDefiniteError`` raised by the model inside a trajectory counts as a
-      divergence (the proposal is rejected) instead of crashing. ``dense_mass=True`` adapts
-      a full mass matrix (for correlated posteriors, e.g. bulk modulus against horizon);
-      ``mass_matrix_from=<DataTree>`` seeds it with the covariance of that fit's draws on
-      the unconstrained space (e.g. a quick SVI fit), which saves most of the early warmup.
-      ``sample_stats``: ``lp``, ``energy``, ``step_size``, ``tree_depth``, ``n_steps``,
-      ``diverging``, ``acceptance_rate`` per draw (see ``_RecordingNUTS``).
-    * ``"svi"``: ``AutoMultivariateNormal`` guide (loc at ``init_values`` / prior median),
-      ``Trace_ELBO``, ``svi_steps`` steps of ``ClippedAdam`` whose learning rate decays
-      geometrically from ``svi_lr`` to ``svi_lr / 10`` (a constant rate leaves the
-      single-sample gradient noise in the result); then ``num_samples`` guide draws as one
-      chain. ``sample_stats`` holds only ``svi_loss`` (ELBO loss) over dim ``svi_step``.
-
-    Both then run the model once per draw for ``log_likelihood`` (pointwise, of the observed
-    site, with its mask and scale applied: masked entries are 0, so each draw's sum is the
-    site's log-likelihood), ``posterior_predictive`` (one replicated data set per draw)
-    and ``pyro.deterministic`` sites (added to ``posterior``).
+    Every method then replays the model per draw: ``log_likelihood`` (pointwise, mask and scale
+    applied, masked entries 0: ``az.loo`` works), ``posterior_predictive`` (one replicated
+    data set per draw) and ``pyro.deterministic`` sites (added to ``posterior``).
+    ``observed_data``; ``constant_data``: the other data tensors (e.g. the mask), the
+    scene's particle positions and observation points, and ``constant_data``. Given a scene,
+    observations get dims ``(point, component)`` with component coords x, y(, z).
     Root attributes: ``method``, ``wall_time_s`` (sampling / optimisation only),
-    ``predictive_wall_time_s``, ``num_grad_evals`` (NUTS: potential-energy evaluations
-    including warmup; SVI: steps), ``settings`` (JSON), ``created_at``, library versions.
+    ``predictive_wall_time_s``, ``num_grad_evals`` (MCMC: potential evaluations including
+    warmup; SVI: steps; Laplace: gradient evaluations), ``settings`` (JSON), ``created_at``,
+    library versions.
     """
-    if method not in ("nuts", "svi"):
-        raise ValueError(f"method must be 'nuts' or 'svi', not {method!r}")
-    init = init_to_median
-    if init_values:
-        dtype = torch.get_default_dtype()
-        values = {k: torch.as_tensor(v, dtype=dtype) for k, v in init_values.items()}
-        init = init_to_value(values=values, fallback=init_to_median)
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, not {method!r}")
+    if init not in ("median", "map"):
+        raise ValueError(f"init must be 'median' or 'map', not {init!r}")
+    check_data(data, observed)
+    start_init = _initial(init_values)
+    trace = init_trace(model, data, start_init)
+    check_observed_shape(trace, data, observed, scene)
+    if scene is not None:
+        check_priors(trace, scene)
+
     start = time.perf_counter()
-    if method == "nuts":
-        posterior, stats, grad_evals = _run_nuts(
-            model, data, num_samples, num_warmup, num_chains, seed, init, progress, dense_mass,
-            None if mass_matrix_from is None else unconstrained_covariance(model, data, mass_matrix_from))
-        settings = {"num_warmup": num_warmup, "num_chains": num_chains, "dense_mass": dense_mass}
+    settings = {"num_samples": num_samples, "seed": seed, "observed": observed, "init": init,
+                "init_values": sorted(init_values or {})}
+    attrs = {}
+    if method in ("nuts", "hmc"):
+        posterior, stats, grad_evals = _mcmc(
+            model, data, method, num_samples, num_warmup, num_chains, seed, chains, start_init,
+            init, dense_mass, mass_matrix_from, target_accept, max_tree_depth, trajectory_length,
+            checkpoint, checkpoint_every, observed, progress)
+        settings.update(num_warmup=num_warmup, num_chains=num_chains, dense_mass=dense_mass,
+                        mass_matrix_from=mass_matrix_from if isinstance(mass_matrix_from, str)
+                        else None if mass_matrix_from is None else "tree")
+        settings.update({"nuts": {"target_accept": target_accept, "max_tree_depth": max_tree_depth},
+                         "hmc": {"trajectory_length": trajectory_length}}[method])
+    elif method == "svi":
+        if init == "map":
+            start_init = _map_init(model, data, start_init, progress)
+        posterior, stats = run_svi(model, data, guide, num_samples, seed, svi_steps, svi_lr,
+                                   start_init, progress, svi_rank, svi_particles)
+        grad_evals = svi_steps * svi_particles
+        settings.update(guide=guide, svi_steps=svi_steps, svi_lr=svi_lr, svi_rank=svi_rank,
+                        svi_particles=svi_particles)
     else:
-        posterior, stats = _run_svi(
-            model, data, num_samples, seed, svi_steps, svi_lr, init, progress)
-        grad_evals = svi_steps
-        settings = {"svi_steps": svi_steps, "svi_lr": svi_lr}
+        space, gaussian, info = _laplace.laplace(model, data, start_init, observed, hessian, progress)
+        posterior = _laplace.draws(space, gaussian, num_samples, seed)
+        stats, grad_evals = _laplace.stats(gaussian), info.pop("gradient_evaluations")
+        settings.update(hessian=hessian)
+        attrs.update(map_potential=info["map_potential"], map_grad_norm=info["map_grad_norm"])
     wall_time = time.perf_counter() - start
 
     start = time.perf_counter()
     pyro.set_rng_seed(seed)
-    loglik, predictive, deterministic = _replay(model, data, posterior, observed, progress)
+    posterior = {k: np.asarray(v) for k, v in posterior.items()}
+    loglik, predictive, deterministic = replay(model, data, posterior, observed, progress)
+    dims, coords, const = _scene_layout(scene, data, observed, dims, coords, constant_data)
     groups = {
-        "posterior": _numpy({**posterior, **deterministic}),
+        "posterior": {**posterior, **deterministic},
         "sample_stats": stats,
-        "log_likelihood": _numpy({observed: loglik}),
-        "posterior_predictive": _numpy({observed: predictive}),
-        "observed_data": _numpy({observed: data[observed]}),
+        "log_likelihood": {observed: loglik},
+        "posterior_predictive": {observed: predictive},
+        "observed_data": {observed: np.asarray(data[observed])},
     }
-    settings.update(num_samples=num_samples, seed=seed, observed=observed,
-                    init_values=sorted(init_values or {}))
-    attrs = {
+    if const:
+        groups["constant_data"] = const
+    attrs.update({
         "method": method,
         "wall_time_s": wall_time,
         "predictive_wall_time_s": time.perf_counter() - start,
@@ -256,5 +168,37 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
         "inference_library": "pyro",
         "inference_library_version": pyro.__version__,
         "torch_version": str(torch.__version__),  # TorchVersion would not write to NetCDF
-    }
+    })
     return build_tree(groups, attrs, dims, coords)
+
+
+def _map_init(model, data, init, progress):
+    space = Unconstrained(model, data, init)
+    return _laplace.init_at(space, _laplace.find_map(space, progress=progress)[0])
+
+
+def _mcmc(model, data, kernel, num_samples, num_warmup, num_chains, seed, chains, init_fn, init,
+          dense_mass, mass_matrix_from, target_accept, max_tree_depth, trajectory_length, checkpoint,
+          checkpoint_every, observed, progress):
+    seed_covariance = None
+    if isinstance(mass_matrix_from, str):
+        if mass_matrix_from != "laplace":
+            raise ValueError("mass_matrix_from must be a DataTree or 'laplace', not "
+                             f"{mass_matrix_from!r}")
+        space, gaussian, _ = _laplace.laplace(model, data, init_fn, observed, "exact", progress)
+        seed_covariance = gaussian.covariance
+        if init == "map":
+            init_fn = _laplace.init_at(space, gaussian.mean)
+    elif mass_matrix_from is not None:
+        seed_covariance = unconstrained_covariance(model, data, mass_matrix_from)
+    if init == "map" and mass_matrix_from != "laplace":
+        init_fn = _map_init(model, data, init_fn, progress)
+    options = ({"target_accept_prob": target_accept, "max_tree_depth": max_tree_depth}
+               if kernel == "nuts" else {"trajectory_length": trajectory_length,
+                                         "target_accept_prob": target_accept})
+    options["full_mass"] = bool(dense_mass or seed_covariance is not None)
+    spec = ChainSpec(model, data, kernel, num_warmup, num_samples, seed, init_fn, options,
+                     seed_covariance, progress, None if checkpoint is None else Path(checkpoint),
+                     checkpoint_every)
+    draws, stats, grad_evals = run_chains(spec, num_chains, chains)
+    return draws, stats, grad_evals

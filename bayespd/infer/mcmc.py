@@ -1,0 +1,229 @@
+"""MCMC chains (NUTS / HMC): per-chain seeds, process-parallel chains, checkpoints.
+
+**Seeds.** Chain ``c`` runs with ``pyro.set_rng_seed(seed + c)`` from a fresh kernel, so its
+draws do not depend on how (or whether) the other chains run.
+
+**Processes.** Pyro's own multi-chain mode uses ``cpu_count() - 1`` workers: one on a 2-core
+machine, i.e. sequential chains. Here ``chains="auto"`` runs the chains in
+``min(num_chains, usable cores)`` worker processes when that is at least 2 (our parent process
+only waits, so it needs no core of its own) and the model and data pickle, else one after
+another in this process. Workers are *spawned*, not forked: CHOLMOD's OpenMP (libgomp)
+deadlocks in a forked child once the parent has factorised. A spawned worker receives the
+chain's spec by pickle, so the model must be importable (a module-level function or an
+instance of a module-level class); a closure (``models.elastic_plate`` returns one) runs
+sequentially under ``"auto"`` and is refused under ``"processes"``. Each worker uses
+``cores // workers`` intra-op threads and the parent's default dtype. Draws are bit-identical
+either way.
+
+**Checkpoints.** With ``checkpoint=<dir>``, chain ``c`` writes ``<dir>/chain<c>.pt``
+(atomically) at the end of warmup, every ``checkpoint_every`` draws and at the end: the draws
+so far, their statistics, and the sampler state (position, adapted step size and inverse mass
+matrix, iteration counter, torch / numpy / python RNG states). A rerun with the same settings
+loads finished chains without sampling and continues unfinished ones from their last file:
+the continued draws are bit-identical to an uninterrupted run's. A kill during warmup loses
+that chain's warmup (the adaptation's running averages are not saved); it restarts from its
+seed, so the result is still the same.
+"""
+
+import multiprocessing
+import os
+import pickle
+import random
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyro
+import torch
+from pyro.infer.mcmc.util import potential_grad
+from pyro.ops.integrator import register_exception_handler
+from tqdm.auto import tqdm
+
+from bayespd.atomic import atomic_path
+from bayespd.materials import NonFiniteParameterError
+from bayespd.sparse import NotPositiveDefiniteError
+
+from .kernels import KERNELS
+from .space import max_plate_nesting
+
+
+class ChainDivergedError(RuntimeError):
+    """Every post-warmup transition of a chain diverged."""
+
+
+@dataclass
+class ChainSpec:
+    """Everything a chain needs; ``options`` are keyword arguments of the Pyro kernel."""
+
+    model: object
+    data: dict
+    kernel: str
+    num_warmup: int
+    num_samples: int
+    seed: int
+    init: object
+    options: dict = field(default_factory=dict)
+    seed_covariance: torch.Tensor | None = None
+    progress: bool = True
+    checkpoint: Path | None = None
+    checkpoint_every: int = 50
+
+
+def _fingerprint(spec, chain):
+    return f"{spec.kernel} warmup={spec.num_warmup} seed={spec.seed + chain} options={sorted(spec.options.items())}"
+
+
+def _rng_state():
+    kind, keys, pos, has_gauss, gauss = np.random.get_state()
+    version, internal, gauss_next = random.getstate()
+    return {"torch": torch.get_rng_state(), "numpy": torch.as_tensor(keys.astype(np.int64)),
+            "numpy_rest": [pos, has_gauss, gauss], "python": [version, list(internal), gauss_next]}
+
+
+def _set_rng_state(state):
+    torch.set_rng_state(state["torch"])
+    pos, has_gauss, gauss = state["numpy_rest"]
+    np.random.set_state(("MT19937", state["numpy"].numpy().astype(np.uint32), pos, has_gauss, gauss))
+    version, internal, gauss_next = state["python"]
+    random.setstate((version, tuple(internal), gauss_next))
+
+
+def _save(path, fingerprint, kernel, z, draws, stats):
+    state = {
+        "fingerprint": fingerprint, "t": kernel._t, "step_size": kernel.step_size,
+        "inverse_mass_matrix": [[list(k), v] for k, v in kernel.inverse_mass_matrix.items()],
+        "z": z, "rng": _rng_state(), "num_grad_evals": kernel.num_grad_evals,
+        "draws": {k: torch.stack(v) for k, v in draws.items()} if draws else {},
+        "stats": {k: list(v) for k, v in stats.items()},
+    }
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
+
+
+def _load(path, fingerprint):
+    if not path.exists():
+        return None
+    state = torch.load(path, weights_only=True)
+    if state["fingerprint"] != fingerprint:
+        raise ValueError(f"checkpoint {path} belongs to another run ({state['fingerprint']}; this "
+                         f"run is {fingerprint}): use another checkpoint directory or delete it")
+    return state
+
+
+def _restore(kernel, state):
+    """Put a set-up kernel into the saved post-warmup state."""
+    kernel._t = state["t"]
+    kernel._adapter.step_size = state["step_size"]
+    kernel.mass_matrix_adapter.inverse_mass_matrix = {tuple(k): v for k, v in state["inverse_mass_matrix"]}
+    z = state["z"]
+    grads, potential = potential_grad(kernel.potential_fn, z)
+    kernel._cache(z, potential, grads)
+    kernel.num_grad_evals = state["num_grad_evals"]
+    kernel.stats.clear()
+    kernel.stats.update({k: list(v) for k, v in state["stats"].items()})
+    _set_rng_state(state["rng"])
+    return z
+
+
+def run_chain(spec: ChainSpec, chain: int, position: int = 0) -> dict:
+    """One chain: ``{"draws": {site: (num_samples, ...)}, "stats": {...}, "grad_evals": n}``."""
+    register_exception_handler(  # a numerical failure inside a trajectory is a divergence
+        "bayespd_numerical_trouble",
+        lambda e: isinstance(e, (NotPositiveDefiniteError, NonFiniteParameterError)),
+        warn_on_overwrite=False,
+    )
+    path = None if spec.checkpoint is None else spec.checkpoint / f"chain{chain}.pt"
+    fingerprint = _fingerprint(spec, chain)
+    state = None if path is None else _load(path, fingerprint)
+    if state is not None and len(next(iter(state["draws"].values()), [])) >= spec.num_samples > 0:
+        return _result({k: v[:spec.num_samples] for k, v in state["draws"].items()},
+                       {k: v[:spec.num_samples] for k, v in state["stats"].items()},
+                       state["num_grad_evals"], chain)
+    pyro.set_rng_seed(spec.seed + chain)
+    kernel = KERNELS[spec.kernel](
+        spec.model, init_strategy=spec.init, seed_covariance=spec.seed_covariance,
+        max_plate_nesting=max_plate_nesting(spec.model, spec.data, spec.init), **spec.options)
+    with pyro.validation_enabled(False):
+        kernel.setup(spec.num_warmup, **spec.data)
+        z = kernel.initial_params
+        draws = {k: [] for k in sorted(z)}
+        bar = tqdm(total=spec.num_warmup + spec.num_samples, desc=f"{spec.kernel} chain {chain}",
+                   position=position, disable=not spec.progress, leave=True)
+        if state is None:
+            for _ in range(spec.num_warmup):
+                z = kernel.sample(z)
+                bar.update()
+            if path is not None:
+                _save(path, fingerprint, kernel, z, {}, kernel.stats)
+        else:
+            z = _restore(kernel, state)
+            draws = {k: list(v) for k, v in state["draws"].items()} or draws
+            bar.update(spec.num_warmup + len(draws[next(iter(draws))]))
+        while len(draws[next(iter(draws))]) < spec.num_samples:
+            z = kernel.sample(z)
+            for k, v in z.items():
+                draws[k].append(kernel.transforms[k].inv(v).detach())
+            done = len(draws[next(iter(draws))])
+            if path is not None and (done % spec.checkpoint_every == 0 or done == spec.num_samples):
+                _save(path, fingerprint, kernel, z, draws, kernel.stats)
+            bar.update()
+            if done % 10 == 0:
+                bar.set_postfix(step_size=f"{kernel.step_size:.2e}",
+                                divergences=sum(kernel.stats["diverging"]))
+        bar.close()
+    return _result({k: torch.stack(v) for k, v in draws.items()}, kernel.stats,
+                   kernel.num_grad_evals, chain)
+
+
+def _result(draws, stats, grad_evals, chain):
+    if stats["diverging"] and all(stats["diverging"]):
+        raise ChainDivergedError(
+            f"every transition of chain {chain} diverged: the sampler cannot integrate this "
+            "posterior. Reparametrise (sample log-moduli or non-centred fields), tighten the "
+            "priors, use a dense mass matrix (dense_mass=True or mass_matrix_from='laplace'), "
+            "start at the MAP (init='map'), or raise target_accept")
+    return {"draws": {k: v.detach().numpy() for k, v in draws.items()},
+            "stats": {k: np.asarray(v) for k, v in stats.items()}, "grad_evals": grad_evals}
+
+
+def _worker(args):
+    payload, chain, threads, dtype = args
+    torch.set_num_threads(threads)
+    torch.set_default_dtype(dtype)
+    return run_chain(pickle.loads(payload), chain, position=chain)
+
+
+def usable_cores() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def _pickled(spec):
+    try:
+        return pickle.dumps(spec)
+    except (pickle.PicklingError, AttributeError, TypeError):
+        return None
+
+
+def run_chains(spec: ChainSpec, num_chains: int, chains="auto") -> tuple[dict, dict, int]:
+    """All chains; ``chains`` is ``"auto"``, ``"sequential"`` or ``"processes"``.
+    Returns ``(draws, stats, grad_evals)`` with arrays shaped ``(chain, draw, ...)``."""
+    if chains not in ("auto", "sequential", "processes"):
+        raise ValueError(f"chains must be 'auto', 'sequential' or 'processes', not {chains!r}")
+    if spec.checkpoint is not None:
+        spec.checkpoint.mkdir(parents=True, exist_ok=True)
+    workers = min(num_chains, usable_cores())
+    payload = _pickled(spec) if chains == "processes" or (chains == "auto" and workers >= 2) else None
+    if chains == "processes" and payload is None:
+        raise ValueError("chains='processes' sends the model to spawned workers by pickle, and "
+                         "this model does not pickle (a closure?): define it at module level "
+                         "or use chains='sequential'")
+    if payload is not None:
+        jobs = [(payload, c, max(1, usable_cores() // workers), torch.get_default_dtype())
+                for c in range(num_chains)]
+        with multiprocessing.get_context("spawn").Pool(workers) as pool:
+            results = pool.map(_worker, jobs)
+    else:
+        results = [run_chain(spec, c) for c in range(num_chains)]
+    draws = {k: np.stack([r["draws"][k] for r in results]) for k in results[0]["draws"]}
+    stats = {k: np.stack([r["stats"][k] for r in results]) for k in results[0]["stats"]}
+    return draws, stats, sum(r["grad_evals"] for r in results)
