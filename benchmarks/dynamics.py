@@ -14,19 +14,10 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import time
 
 import torch
 
-
-def best(f, repeat: int) -> float:
-    f()
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        f()
-        times.append(time.perf_counter() - t0)
-    return min(times)
+from timing import best
 
 
 def main():
