@@ -1,0 +1,138 @@
+"""bayespd/gmrf.py and models/heterogeneous_field.py: log mu(x) as a GMRF on the seed 000 square.
+
+Scene: the §4 square (bottom fixed, F = (1000, 1000) on top) on a 6 x 6 grid, mu(x) graded by
+eq 27 (k(x) of eq 26 known). Data: a grid twice as fine (same body and horizon), 1 % noise.
+"""
+import math
+
+import numpy as np
+import pyro.distributions as dist
+import pytest
+import torch
+from pyro import poutine
+
+import bayespd as bp
+from bayespd.gmrf import GMRF
+from bayespd.infer import fit
+from bayespd.inverse.tikhonov import tikhonov
+from experiments.tikhonov_square import MU0, SIDE, graded_moduli, square_scene
+from models.heterogeneous_field import heterogeneous_field, tikhonov_settings
+
+N_SIDE = 6
+H = SIDE / (N_SIDE - 1)
+DELTA = 3 * H
+
+
+def test_gmrf_density_is_exact_and_its_laplacian_consistent():
+    p = bp.grid_2d(12.0, 12.0, 1.0)
+    g = GMRF(p, bp.find_bonds(p, 3.0))
+    x, y = p.x[:, 0] - 6, p.x[:, 1] - 6
+    inner = (np.abs(x) < 1.6) & (np.abs(y) < 1.6)  # a full family (3.5 h) inside the body
+    # A ~ -Laplacian: exact for quadratics in the interior of a lattice family
+    np.testing.assert_allclose((g.laplacian @ (x**2 + y**2))[inner], -4.0, atol=1e-12)
+    np.testing.assert_allclose(g.laplacian @ np.ones(p.n), 0.0, atol=1e-12)
+    ell, s = torch.tensor(2.0), torch.tensor(0.3)
+    Q = g.precision(ell, s).to_dense()
+    cov = torch.linalg.inv(Q)
+    torch.testing.assert_close(torch.diagonal(cov).mean(), s**2, rtol=1e-12, atol=0)
+    z = torch.randn(4, p.n, generator=torch.Generator().manual_seed(0))
+    exact = torch.distributions.MultivariateNormal(torch.full((p.n,), 0.5), precision_matrix=Q)
+    torch.testing.assert_close(g.log_prob(z, 0.5, ell, s), exact.log_prob(z), rtol=1e-12, atol=1e-9)
+    # colour(w) has covariance Q^-1 exactly: C C^T = Q^-1 with C = colour(I)
+    C = g.colour(torch.eye(p.n), ell, s)
+    torch.testing.assert_close(C @ C.T, cov, rtol=0, atol=1e-12)
+    L = g.square_root(1.7)
+    np.testing.assert_allclose((L.T @ L).toarray(), np.eye(p.n) + 1.7**2 * g.laplacian.toarray(), atol=1e-12)
+    # the log-determinant is differentiable in both hyper-parameters: check against autograd of logdet
+    ell.requires_grad_(), s.requires_grad_()
+    dl = torch.autograd.grad(g.log_det(ell, s), (ell, s))
+    de = torch.autograd.grad(torch.logdet(g.precision(ell, s).to_dense()), (ell, s))
+    torch.testing.assert_close(dl, de, rtol=1e-10, atol=0)
+
+
+@pytest.fixture(scope="module")
+def square():
+    coarse = square_scene(H, DELTA)
+    x = coarse.particles.x
+    truth = graded_moduli(x)
+    fine = square_scene(H / 2, DELTA, x, cell=H)
+    with torch.no_grad():
+        clean = fine.observe(fine.solve(dict(graded_moduli(fine.particles.x), delta=DELTA)))
+    sd = 0.01 * float(clean.abs().max())
+    y = clean + sd * torch.randn(clean.shape, generator=torch.Generator().manual_seed(0))
+    return coarse, truth, y, sd
+
+
+def test_map_at_fixed_hyper_parameters_is_the_tikhonov_solution(square):
+    """MAP of the Gaussian-prior model == Tikhonov (seed 000 eq 12) with psi = tau, L^T L = Q / tau:
+    the two objectives are the same function of log mu, so the minimisers agree to solver tolerance."""
+    coarse, truth, y, sd = square
+    fixed = {"K": truth["K"], "delta": DELTA}
+    model = heterogeneous_field(coarse, MU0, 5 * sd, fixed, whitened=False)
+    hyper = {"G_mean": math.log(MU0) + 0.1, "length": 300.0, "amplitude": 0.1, "sigma": sd}
+    known = poutine.condition(model, data={k: torch.tensor(v) for k, v in hyper.items()})
+    tree = fit(known, {"y": y}, "laplace", num_samples=10, seed=0, progress=False,
+               init_values={"log_G": np.full(coarse.particles.n, math.log(MU0))})
+    map_log_mu = tree["sample_stats"]["mode_unconstrained"].values
+    kw = tikhonov_settings(model, hyper["G_mean"], hyper["length"], hyper["amplitude"])
+    res = tikhonov(coarse, y, {"G": np.full(coarse.particles.n, MU0)}, fixed=fixed, sigma=sd, gtol=1e-12, **kw)
+    assert res.converged
+    np.testing.assert_allclose(np.log(res.params["G"]), map_log_mu, rtol=0, atol=1e-7)
+    assert np.abs(map_log_mu - np.log(truth["G"].numpy())).max() > 1e-3  # a non-trivial field
+
+
+def check_field(tree, truth):
+    """Posterior mean of mu(x) within 8 % (mean) / 20 % (max) of the truth, 90 % band covering
+    it at >= 80 % of the particles."""
+    mu = truth["G"].numpy()
+    G = tree["posterior"]["G"].values.reshape(-1, len(mu))
+    rel = np.abs(G.mean(0) / mu - 1)
+    assert rel.mean() < 0.08 and rel.max() < 0.20, (rel.mean(), rel.max())
+    lo, hi = np.quantile(G, [0.05, 0.95], axis=0)
+    assert np.mean((lo <= mu) & (mu <= hi)) >= 0.8
+
+
+def test_laplace_mean_recovers_the_graded_field(square):
+    """Whitened model, amplitude and length at their prior medians (0.1, extent / 4), level and
+    sigma inferred. Tikhonov on this problem at 11 x 11 (experiments/tikhonov_heterogeneous.py,
+    1 % noise) reaches 4 % mean / 11 % max error; we require 8 % / 20 %, sigma within 3 sd and the
+    90 % band to cover mu(x) at >= 80 % of the particles."""
+    coarse, truth, y, sd = square
+    model = heterogeneous_field(coarse, MU0, 5 * sd, {"K": truth["K"], "delta": DELTA})
+    known = poutine.condition(model, data={"amplitude": torch.tensor(0.1), "length": torch.tensor(250.0)})
+    tree = fit(known, {"y": y}, "laplace", num_samples=400, seed=0, progress=False,
+               init_values={"G_mean": math.log(MU0), "sigma": 5 * sd})
+    check_field(tree, truth)
+    s = tree["posterior"]["sigma"].values.ravel()
+    assert abs(s.mean() - sd) < 3 * s.std()
+
+
+def test_bad_input_is_refused(square):
+    coarse, truth, y, sd = square
+    fixed = {"K": truth["K"], "delta": DELTA}
+    with pytest.raises(ValueError, match=r"fixed must give exactly \['K', 'delta'\]"):
+        heterogeneous_field(coarse, MU0, sd, {"delta": DELTA})
+    with pytest.raises(ValueError, match="delta"):
+        heterogeneous_field(coarse, MU0, sd, {"K": truth["K"], "delta": 0.5 * H})
+    with pytest.raises(ValueError, match=r"prior of amplitude .*negative values.*LogNormal"):
+        heterogeneous_field(coarse, MU0, sd, fixed, priors={"amplitude": dist.Normal(0.1, 0.1)})
+    with pytest.raises(ValueError, match=r"no such parameter\(s\) \['tau'\]"):
+        heterogeneous_field(coarse, MU0, sd, fixed, priors={"tau": dist.Gamma(1.0, 1.0)})
+    with pytest.raises(ValueError, match="nominal G must be finite and positive"):
+        heterogeneous_field(coarse, -MU0, sd, fixed)
+    with pytest.raises(ValueError, match="field must be one of"):
+        heterogeneous_field(coarse, MU0, sd, fixed, field="E")
+    model = heterogeneous_field(coarse, MU0, sd, fixed)
+    with pytest.raises(ValueError, match=r"y has shape \(35, 2\) but the model predicts \(36, 2\)"):
+        model(y[:-1])
+
+
+@pytest.mark.slow
+def test_svi_with_hyper_priors_recovers_the_field(square):
+    """The full hierarchical model (amplitude, length, level and sigma under their hyper-priors)
+    by SVI with a full-rank Gaussian guide (~30 s): the same error bounds as the Laplace test."""
+    coarse, truth, y, sd = square
+    model = heterogeneous_field(coarse, MU0, 5 * sd, {"K": truth["K"], "delta": DELTA})
+    tree = fit(model, {"y": y}, "svi", guide="mvn", svi_steps=1500, num_samples=300, seed=0, progress=False,
+               init_values={"G_mean": math.log(MU0), "sigma": 5 * sd, "amplitude": 0.1, "length": 250.0})
+    check_field(tree, truth)
