@@ -11,7 +11,7 @@ from bayespd.bonds import Bonds, find_bonds, precrack  # noqa: E402
 from bayespd.influence import Bernstein, Conical, Constant, Gaussian  # noqa: E402
 from bayespd.materials import LPS, BondBased, moduli_from_young  # noqa: E402
 from bayespd.boundary import Dirichlet, Load  # noqa: E402
-from bayespd.observe import (GridObservation, Observation, ParticleObservation,  # noqa: E402
+from bayespd.observe import (GridObservation, Observation, OpeningObservation, ParticleObservation,  # noqa: E402
                              edge_mask, finite_mask, grid_points, model_data)
 from bayespd.dic import frame_data, read_dice  # noqa: E402
 from bayespd.vtk import Series as VTKSeries, write_pvd, write_vtu  # noqa: E402
@@ -22,7 +22,7 @@ from bayespd.sparse import NotPositiveDefiniteError, solve  # noqa: E402
 __all__ = [
     "Particles", "grid_2d", "grid_3d", "from_points", "from_mesh", "Bonds", "find_bonds", "precrack",
     "Constant", "Conical", "Gaussian", "Bernstein", "LPS", "BondBased", "moduli_from_young",
-    "Dirichlet", "Load", "Observation", "ParticleObservation", "GridObservation", "grid_points",
+    "Dirichlet", "Load", "Observation", "OpeningObservation", "ParticleObservation", "GridObservation", "grid_points",
     "edge_mask", "finite_mask", "model_data", "read_dice", "frame_data", "write_vtu", "write_pvd",
     "VTKSeries", "Scene", "NotPositiveDefiniteError", "solve",
 ]

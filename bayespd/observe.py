@@ -105,6 +105,27 @@ class ParticleObservation(LinearObservation):
         super().__init__(particles.x[which], which[:, None], np.ones((len(which), 1)))
 
 
+class OpeningObservation(LinearObservation):
+    """Crack openings u(above_p) - u(below_p) at stations p (the aperture of seed 000 eq 28),
+    each face by barycentric interpolation. ``component`` keeps one component in the mask
+    (e.g. 1: the y opening of a crack along x); None keeps all."""
+
+    def __init__(self, particles: Particles, above, below, component: int | None = None):
+        above, below = np.asarray(above, dtype=float), np.asarray(below, dtype=float)
+        if above.shape != below.shape or above.ndim != 2 or len(above) == 0:
+            raise ValueError(f"above and below must be matching non-empty (n, dim) point arrays, "
+                             f"got shapes {above.shape} and {below.shape}")
+        top, bottom = Observation(particles, above), Observation(particles, below)
+        mask = np.ones(above.shape, dtype=bool)
+        if component is not None:
+            if not 0 <= component < particles.dim:
+                raise ValueError(f"component must be in [0, {particles.dim}), got {component}")
+            mask[:] = False
+            mask[:, component] = True
+        super().__init__((above + below) / 2, torch.cat([top._index, bottom._index], 1),
+                         torch.cat([top._weights, -bottom._weights], 1), mask)
+
+
 class _Lattice:
     """Particles on a regular lattice of spacing h: a table from integer lattice nodes to
     particle indices, -1 where a node has no particle (a hole, a notch, outside)."""

@@ -33,7 +33,6 @@ import bayespd as bp
 import bayespd.sparse
 from bayespd.damage import CriticalStretch
 from bayespd.inverse.tikhonov import tikhonov
-from bayespd.observe import LinearObservation
 from bayespd.solvers.quasistatic import LoadedBody, quasi_static
 from bayespd.sparse import ConvergenceError
 
@@ -67,14 +66,9 @@ def aperture_points(h: float) -> np.ndarray:
     return np.stack([np.stack([FACE_X, np.full_like(FACE_X, Y_CRACK + s * H / 2)], 1) for s in (1, -1)], 1)
 
 
-def aperture_operator(p, pts) -> LinearObservation:
-    """u(above) - u(below) at each station, by barycentric interpolation on each face."""
-    above, below = bp.Observation(p, pts[:, 0]), bp.Observation(p, pts[:, 1])
-    index = np.concatenate([above._index.numpy(), below._index.numpy()], axis=1)
-    weights = np.concatenate([above._weights.numpy(), -below._weights.numpy()], axis=1)
-    mask = np.zeros((len(pts), 2), dtype=bool)
-    mask[:, 1] = True  # the opening (y) component: eq 28's scalar aperture
-    return LinearObservation(pts.mean(1), index, weights, mask)
+def aperture_operator(p, pts) -> bp.OpeningObservation:
+    """u_y(above) - u_y(below) at each station: eq 28's scalar aperture."""
+    return bp.OpeningObservation(p, pts[:, 0], pts[:, 1], component=1)
 
 
 def fracture(h: float, F: float):

@@ -17,29 +17,19 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import pyro
 import pyro.distributions as dist
 import torch
 
 import bayespd as bp
-from bayespd.observe import LinearObservation
 from models.observations import check_shape
 from models.priors import choose, fixed_params, positive, positive_support
 
 
-def aperture_observation(particles, above, below, component: int = 1) -> LinearObservation:
-    """Openings u(above_j) - u(below_j) at stations j (barycentric interpolation on each face);
-    its mask keeps only ``component`` (default 1: the y opening of a crack along x)."""
-    above, below = np.asarray(above, dtype=float), np.asarray(below, dtype=float)
-    if above.shape != below.shape or above.ndim != 2 or len(above) == 0:
-        raise ValueError(f"above and below must be matching (n, dim) point arrays, got {above.shape} and {below.shape}")
-    top, bottom = bp.Observation(particles, above), bp.Observation(particles, below)
-    index = np.concatenate([top._index.numpy(), bottom._index.numpy()], axis=1)
-    weights = np.concatenate([top._weights.numpy(), -bottom._weights.numpy()], axis=1)
-    mask = np.zeros(above.shape, dtype=bool)
-    mask[:, component] = True
-    return LinearObservation((above + below) / 2, index, weights, mask)
+def aperture_observation(particles, above, below, component: int = 1) -> bp.OpeningObservation:
+    """Openings u(above_j) - u(below_j) at stations j; the mask keeps ``component`` (default 1:
+    the y opening of a crack along x)."""
+    return bp.OpeningObservation(particles, above, below, component)
 
 
 def load_from_aperture(scene, nominal: float, noise_scale: float, fixed: dict, priors: dict | None = None):

@@ -143,3 +143,19 @@ def test_dic_grid_mask_drives_the_elastic_plate_likelihood():
     torch.testing.assert_close(logp, expected, rtol=1e-12, atol=0)
     logp.backward()
     assert torch.isfinite(params["K"].grad) and params["K"].grad != 0
+
+
+def test_opening_is_the_difference_of_the_two_faces(small_scene):
+    """An opening observation of u is u(above) - u(below): zero for a rigid translation,
+    exact for an affine field (barycentric interpolation reproduces it)."""
+    p = small_scene.particles
+    x0 = p.x.mean(0)
+    above = x0 + np.array([[0.0, 0.5], [2.0, 0.5]])
+    below = above - np.array([0.0, 1.0])
+    obs = bp.OpeningObservation(p, above, below, component=1)
+    F = torch.tensor([[1e-3, 2e-3], [-1e-3, 4e-3]], dtype=torch.float64)
+    u = torch.as_tensor(p.x) @ F.T + torch.tensor([0.3, -0.2], dtype=torch.float64)
+    np.testing.assert_allclose(obs(u).numpy(), np.tile([2e-3, 4e-3], (2, 1)), atol=1e-14)
+    assert obs.mask[:, 1].all() and not obs.mask[:, 0].any()
+    with pytest.raises(ValueError, match="matching"):
+        bp.OpeningObservation(p, above, below[:1])
