@@ -14,7 +14,7 @@ from . import laplace as _laplace
 from .checks import check_data, check_observed_shape, check_priors
 from .datatree import build_tree
 from .mcmc import ChainSpec, run_chains
-from .predictive import replay
+from .replay import replay
 from .space import Unconstrained, init_trace
 from .svi import run_svi
 

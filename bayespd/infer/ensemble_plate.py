@@ -1,0 +1,86 @@
+"""A ready-made fracture scene: a square bond-based plate (plane stress, seed 002 eq 1) with a
+notch from the left edge to the centre, bottom layer clamped, top layer pulled up by lambda
+(mode I), white Brownian forcing C = sigma^2 I (eq 4) and the sharp critical stretch (eq 2).
+Posterior parameters: the bulk modulus ``K`` and the critical stretch ``s0``.
+
+The mobility M = sigma^2 / eta is set so that M dt lambda_min(A) = ``relax`` (one step relaxes
+the elastic field); the bond-based operator is linear in K (c = 9 K / (pi t delta^3)), so
+lambda_min(A; K) = K lambda_min(A; 1), found once per process.
+"""
+from __future__ import annotations
+
+from functools import lru_cache, partial
+
+import numpy as np
+import scipy.sparse.linalg as sla
+import torch
+
+import bayespd as bp
+from bayespd.damage import CriticalStretch
+from bayespd.solvers import white_noise
+from bayespd.solvers.fracture import StochasticFracture
+from bayespd.solvers.quasistatic import LoadedBody, quasi_static
+
+from .ensemble_scene import FractureScene
+
+
+@lru_cache(maxsize=4)
+def _geometry(side: float, h: float, m: int):
+    """Material (bonds with the notch cut) and the two Dirichlet layers, built once."""
+    delta = m * h
+    p = bp.grid_2d(side, side, h)
+    bonds = bp.precrack(p, bp.find_bonds(p, delta), [[0.0, side / 2], [side / 2, side / 2]])
+    bcs = (bp.Dirichlet.layer(p, "bottom", delta), bp.Dirichlet.layer(p, "top", delta, (0.0, 1.0)))
+    return bp.BondBased(p, bonds), bcs, delta
+
+
+def plate_body(side, h, m, K) -> LoadedBody:
+    """The plate as a ``LoadedBody`` at bulk modulus K (top layer at unit displacement)."""
+    material, bcs, delta = _geometry(side, h, m)
+    return LoadedBody(material, {"K": K}, delta, list(bcs))
+
+
+@lru_cache(maxsize=4)
+def _unit_lambda_min(side, h, m) -> float:
+    """lambda_min of the intact operator at K = 1 (shift-invert Lanczos from a fixed start
+    vector: ARPACK's default random start changes the last bits from run to run)."""
+    body = plate_body(side, h, m, 1.0)
+    intact = torch.ones(body.n_bonds)
+    A = body.operator(intact, body.active(intact))
+    v0 = np.ones(A.shape[0])
+    return float(sla.eigsh(A, k=1, sigma=0, v0=v0, return_eigenvectors=False)[0])
+
+
+def plate_driver(params: dict, *, side, h, m, sigma, relax, dt) -> StochasticFracture:
+    """The stochastic fracture driver at ``params = {"K": ..., "s0": ...}``."""
+    K, s0 = params["K"], params["s0"]
+    if not (K > 0 and s0 > 0):
+        raise ValueError(f"K and s0 must be positive, got K={K}, s0={s0}")
+    body = plate_body(side, h, m, K)
+    mobility = relax / (dt * K * _unit_lambda_min(side, h, m))
+    noise = white_noise(sigma, len(body.constraints.free_dofs))
+    return StochasticFracture(body, CriticalStretch(s0), noise, eta=sigma**2 / mobility)
+
+
+def notched_plate(side: float = 40.0, h: float = 1.0, m: int = 3, s0_nominal: float = 0.0094,
+                  steps: int = 50, reach: float = 2.0, sigma: float = 1500.0, relax: float = 1e4,
+                  dt: float = 1.0, observed_path=None) -> FractureScene:
+    """The scene: ``steps`` top displacements up to ``reach`` times the elastic estimate of
+    initiation at ``s0_nominal`` (s0 / max stretch at unit displacement, independent of K);
+    failure when the crack has run through half the ligament (side / 4). Paths are traced at
+    phi > 0.3: the faces of a straight crack have phi = 0.44 at delta = 3h, of a kinked one
+    0.3-0.4, and 0.4 would cut a kinked path apart (``experiments/crack_paths.py``)."""
+    if not (side > 0 and h > 0 and side / h >= 8 and int(m) == m and m >= 2):
+        raise ValueError("need side >= 8 h, h > 0 and an integer horizon factor m >= 2")
+    body = plate_body(side, h, m, 1.0)
+    unit = quasi_static(body, [1e-3]).u / 1e-3
+    initiation = s0_nominal / float(body.kinematics.stretch(unit).max())
+    lams = np.linspace(reach / steps, reach, steps) * initiation
+    build = partial(plate_driver, side=float(side), h=float(h), m=int(m), sigma=float(sigma),
+                    relax=float(relax), dt=float(dt))
+    return FractureScene(build, ("K", "s0"), lams, dt, np.asarray(body.particles.x),
+                         origin=(side / 2, side / 2), direction=(1.0, 0.0),
+                         failure_length=side / 4, load_component=1, path_threshold=0.3,
+                         observed_path=observed_path,
+                         attrs={"scene": "notched_plate", "side": side, "h": h, "m": m,
+                                "sigma": sigma, "relax": relax})

@@ -1,0 +1,110 @@
+"""A fracture scene for posterior-predictive ensembles, and one realisation of it.
+
+A ``FractureScene`` says how a parameter draw becomes a stochastic fracture run (seed 002
+eq 4 with the damage law of eq 2 or 5, ``bayespd.solvers.fracture``) and what to measure:
+
+* ``build(params) -> StochasticFracture``: a picklable callable (a module-level function or
+  a ``functools.partial`` of one) taking ``{name: float}`` for the names in ``params``;
+* ``load_factors`` and ``dt`` of the run (the same for every realisation); ``x`` the
+  particle positions (N, 2) of the body ``build`` makes (for the maps);
+* ``origin`` and ``direction`` (2D): the line the crack is expected to follow; crack paths
+  are read as their offset across it at stations along it (the credible band);
+* ``failure_length``: failure is the load factor at which the crack first reaches this
+  length (under Brownian forcing the reaction is too noisy for its peak to locate failure);
+  ``load_component``: the reaction component reported as the load (None: its norm);
+* ``observed_path``: an observed crack polyline (k, 2) to overlay, or None.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import torch
+
+from bayespd import sparse
+from bayespd.damage import crack_length
+
+
+@dataclass(frozen=True)
+class FractureScene:
+    build: Callable
+    params: tuple
+    load_factors: np.ndarray
+    dt: float
+    x: np.ndarray
+    origin: tuple = (0.0, 0.0)
+    direction: tuple = (1.0, 0.0)
+    failure_length: float | None = None
+    load_component: int | None = None
+    threshold: float = 0.4
+    path_threshold: float = 0.4
+    hold: bool = True
+    max_steps: int | None = None
+    observed_path: np.ndarray | None = None
+    attrs: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if not callable(self.build):
+            raise ValueError("build must be a callable params -> StochasticFracture")
+        lams = np.asarray(self.load_factors, dtype=np.float64)
+        if lams.ndim != 1 or len(lams) == 0 or not np.all(np.isfinite(lams)):
+            raise ValueError("load_factors must be a non-empty 1D array of finite numbers")
+        if not self.dt > 0:
+            raise ValueError(f"dt must be positive, got {self.dt}")
+        d = np.asarray(self.direction, dtype=np.float64)
+        if d.shape != (2,) or not np.linalg.norm(d) > 0 or np.shape(self.origin) != (2,):
+            raise ValueError("origin and direction must be 2D points/vectors (the crack band is "
+                             "measured across a line in the plane), direction non-zero")
+        if not 0 < self.threshold < 1:
+            raise ValueError("threshold must lie in (0, 1) (a damage index phi)")
+        x = np.asarray(self.x, dtype=np.float64)
+        if x.ndim != 2 or x.shape[1] != 2:
+            raise ValueError(f"x must be the (N, 2) particle positions, got shape {x.shape}")
+        object.__setattr__(self, "x", x)
+        object.__setattr__(self, "load_factors", lams)
+        object.__setattr__(self, "direction", tuple(d / np.linalg.norm(d)))
+        object.__setattr__(self, "params", tuple(self.params))
+
+
+def realise(scene: FractureScene, params: dict, seed: int, device=None) -> dict:
+    """One realisation: build the driver at ``params`` and run it with Brownian seed ``seed``
+    under ``torch.device(device)`` (default CPU), with one torch and one BLAS thread (so
+    the result is the same bit for bit in any process or worker). Returns float64 / int64
+    numpy arrays (see ``Realisation``) plus the derived peak load, failure load factor,
+    first-failure time and final crack length."""
+    threads, factor_threads = torch.get_num_threads(), sparse.FACTOR_THREADS
+    torch.set_num_threads(1)
+    sparse.FACTOR_THREADS = 1  # CHOLMOD's BLAS: its sums depend on the thread count
+    start, cpu = time.perf_counter(), time.process_time()
+    try:
+        with torch.device(device or "cpu"):
+            run = scene.build({k: float(params[k]) for k in scene.params}).run(
+                scene.load_factors, scene.dt, seed=int(seed), hold=scene.hold,
+                max_steps=scene.max_steps, path_threshold=scene.path_threshold)
+    finally:
+        torch.set_num_threads(threads)
+        sparse.FACTOR_THREADS = factor_threads
+    reaction = np.asarray(run.reaction, dtype=np.float64)
+    load = (np.linalg.norm(reaction, axis=1) if scene.load_component is None
+            else reaction[:, scene.load_component])
+    k = int(np.argmax(np.abs(load)))
+    first = run.first_failure
+    failure = np.nan
+    if scene.failure_length is not None:
+        reached = np.flatnonzero(run.crack_length >= scene.failure_length)
+        failure = float(run.load_factor[reached[0]]) if len(reached) else np.nan
+    return {
+        "t": np.asarray(run.t, np.float64), "load_factor": np.asarray(run.load_factor, np.float64),
+        "reaction": reaction, "broken": np.asarray(run.broken, np.int64),
+        "crack_length": np.asarray(run.crack_length, np.float64),
+        "phi": np.asarray(run.phi, np.float64), "path": np.asarray(run.path, np.float64),
+        "peak_load": np.float64(load[k]), "peak_load_factor": np.float64(run.load_factor[k]),
+        "failure_load_factor": np.float64(failure),
+        "first_failure_time": np.float64(np.nan if first is None else run.t[first]),
+        "final_crack_length": np.float64(crack_length(run.path)),
+        "device": np.str_(str(run.u.device)), "u_dtype": np.str_(str(run.u.dtype)),
+        "wall_time_s": np.float64(time.perf_counter() - start),
+        "cpu_time_s": np.float64(time.process_time() - cpu),  # this process's CPU: load-independent
+    }

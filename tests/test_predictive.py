@@ -1,0 +1,201 @@
+"""Posterior-predictive crack ensembles: per-realisation seeds, the aggregate's statistics
+(damage probability, path band, epistemic / aleatoric split), the store's resume, devices."""
+import numpy as np
+import pytest
+import torch
+import xarray as xr
+
+from bayespd.infer import predictive
+from bayespd.infer.datatree import build_tree
+from bayespd.infer.ensemble_plate import notched_plate
+from bayespd.infer.ensemble_scene import FractureScene, realise
+from bayespd.infer.ensemble_stats import TIMES, aggregate, load_step_lengths, offsets
+from bayespd.infer.ensemble_store import PlanMismatchError
+from bayespd.infer.predictive import ensemble, pending, posterior_draws, realisation_inputs, rerun
+
+K0, S0 = 3000.0, 0.0094
+
+
+def posterior(n_draws=40, rel=0.05, seed=0):
+    """A fitted tree's posterior group: K and s0 with relative sd ``rel`` (2 chains)."""
+    rng = np.random.default_rng(seed)
+    return build_tree({"posterior": {"K": K0 * (1 + rel * rng.standard_normal((2, n_draws // 2))),
+                                     "s0": S0 * (1 + rel * rng.standard_normal((2, n_draws // 2)))}})
+
+
+@pytest.fixture(scope="module")
+def quiet_scene():
+    """16 x 16 notched plate with a vanishing Brownian force (sigma = 1e-3): the runs follow
+    the quasi-static path (tests/test_fracture.py)."""
+    return notched_plate(side=16.0, h=1.0, steps=20, sigma=1e-3)
+
+
+@pytest.fixture(scope="module")
+def noisy_scene():
+    """The same plate with a Brownian force that deflects the crack by a few h."""
+    return notched_plate(side=16.0, h=1.0, steps=20, sigma=100.0)
+
+
+def test_realisation_inputs_depend_only_on_seed_and_index():
+    """(draw, Brownian seed) of realisation i come from (seed, i) alone; the mean ensemble
+    pairs the same Brownian seed with the posterior mean; draws are uniform (2000 picks of
+    40 draws: 50 each, binomial sd 6.9, all within 5 sd)."""
+    draws = posterior_draws(posterior(), ("K", "s0"))
+    a = realisation_inputs(draws, 7, 3)
+    assert a == realisation_inputs(draws, 7, 3) and a != realisation_inputs(draws, 8, 3)
+    params, d, b = a
+    assert params == {"K": draws["K"][d], "s0": draws["s0"][d]}
+    mean, d_mean, b_mean = realisation_inputs(draws, 7, 3, "mean")
+    assert d_mean == -1 and b_mean == b and mean["K"] == pytest.approx(draws["K"].mean(), rel=1e-15)
+    counts = np.bincount([realisation_inputs(draws, 0, i)[1] for i in range(2000)], minlength=40)
+    assert np.all(np.abs(counts - 50) < 5 * np.sqrt(2000 / 40 * (39 / 40)))
+
+
+def _fake(phi, path, outcome):
+    """A realisation result with the given phi, path and scalar outcome (all outcomes)."""
+    lam = np.array([1.0, 1.0, 2.0, 3.0])
+    return {"t": np.arange(4.0), "load_factor": lam, "reaction": np.zeros((4, 2)), "broken": np.zeros(4, np.int64),
+            "crack_length": np.array([0.0, 1.0, 2.0, 4.0]), "phi": phi, "path": path,
+            **{k: outcome for k in ("peak_load", "peak_load_factor", "failure_load_factor",
+                                    "final_crack_length", "first_failure_time")}, "wall_time_s": 0.0, "cpu_time_s": 0.0}
+
+
+def test_aggregate_splits_total_spread_into_aleatoric_and_epistemic():
+    """Outcome Y = a(params) + e with sd(a) = 2, sd(e) = 1: the posterior ensemble's sd is
+    sqrt(5), the mean ensemble's 1, the epistemic part 2 (law of total variance); 2000
+    realisations each: the sd estimates are within 4 sd(s) = 4 s / sqrt(2 n) < 0.07 of it.
+    Straight paths at offset c across the crack line have band quantiles those of c;
+    P(phi > 0.4) is the fraction of realisations above the threshold."""
+    rng = np.random.default_rng(1)
+    n, x = 2000, np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]])
+    scene = FractureScene(lambda p: None, ("K",), [1.0, 2.0, 3.0], 1.0, x, origin=(0.0, 1.0))
+    results = []
+    for kind, epistemic in (("posterior", 2.0), ("mean", 0.0)):
+        y = epistemic * rng.standard_normal(n) + rng.standard_normal(n)
+        c = rng.standard_normal(n)
+        phi = rng.uniform(size=(n, 3)) * [0.5, 1.0, 0.0]  # P(phi > 0.4): 0.2, 0.6, 0
+        for i in range(n):
+            path = np.array([[0.0, 1 + c[i]], [5.0, 1 + c[i]], [10.0, 1 + c[i]]])
+            results.append((kind, i, _fake(phi[i], path, y[i]), {"K": 1.0}, i, i))
+    ds = aggregate(results, scene, seed=0)
+    spread = ds["spread"].sel(outcome="failure_load_factor")
+    assert spread.sel(source="total") == pytest.approx(np.sqrt(5), abs=4 * np.sqrt(5) / np.sqrt(2 * n))
+    assert spread.sel(source="aleatoric") == pytest.approx(1.0, abs=4 / np.sqrt(2 * n))
+    assert spread.sel(source="epistemic") == pytest.approx(2.0, abs=0.15)
+    c_post = [r[2]["path"][0, 1] - 1 for r in results if r[0] == "posterior"]
+    band = ds["path_quantiles"].sel(kind="posterior")
+    assert np.allclose(band.values, np.quantile(c_post, [0.05, 0.5, 0.95])[:, None], atol=1e-12)
+    assert np.all(ds["path_coverage"].values == 1.0)
+    assert np.allclose(ds["probability"].values, [[0.2, 0.6, 0.0]] * 2, atol=0.04)  # 4 binomial sd at n = 2000
+    assert ds["probability"].sel(kind="mean").values[0] == np.mean(
+        [r[2]["phi"][0] > 0.4 for r in results if r[0] == "mean"])
+    assert np.array_equal(ds["crack_length_at_load"].values[0], [0.0, 1.0, 2.0, 4.0][1:])
+
+
+def test_offsets_across_a_slanted_line_and_step_lengths():
+    """A path on the line y = x + 1 seen from origin (0, 0) along (1, 1)/sqrt2 has offset
+    1/sqrt2 everywhere it reaches, NaN beyond, whatever its point order; with ``hold`` the
+    crack length of a load step is the one at its last repeat."""
+    path = np.array([[3.0, 4.0], [0.0, 1.0], [1.0, 2.0]])
+    s = np.array([-1.0, 1.0, 2.0, 4.0, 6.0])
+    o = offsets(path, np.zeros(2), np.array([1.0, 1.0]) / np.sqrt(2), s)
+    inside = (s >= 1 / np.sqrt(2)) & (s <= 7 / np.sqrt(2))
+    assert np.allclose(o[inside], 1 / np.sqrt(2), atol=1e-14) and np.all(np.isnan(o[~inside]))
+    lengths = load_step_lengths(np.array([1.0, 2.0, 2.0, 2.0, 3.0]), np.array([0, 1, 2, 3, 3.5]), [1.0, 2.0, 3.0, 4.0])
+    assert np.array_equal(lengths[:3], [0, 3, 3.5]) and np.isnan(lengths[3])
+
+
+def test_vanishing_noise_makes_the_spread_epistemic(quiet_scene, tmp_path):
+    """sigma -> 0: the mean ensemble is deterministic (same phi and failure load for every
+    Brownian seed: aleatoric sd 0, P(phi > 0.4) only 0 or 1) and the posterior spread is all
+    epistemic. Under displacement control the stretch is linear in the load (small strain),
+    so the quasi-static failure load scales with s0: failure / s0 is constant up to one load
+    step of quantisation. Each realisation is re-run exactly by ``realise`` from its inputs."""
+    tree = posterior(rel=0.1)
+    ds = ensemble(tree, quiet_scene, 6, n_mean=3, store=tmp_path, workers=1, progress=False)
+    mean = ds.sel(realisation=ds["ensemble"] == "mean")
+    assert np.all(mean["phi"].values == mean["phi"].values[0])
+    assert ds["spread"].sel(outcome="failure_load_factor", source="aleatoric") == 0.0
+    assert set(np.unique(ds["probability"].sel(kind="mean").values)) <= {0.0, 1.0}
+    post = ds.sel(realisation=ds["ensemble"] == "posterior")
+    fail, s0 = post["failure_load_factor"].values, post["param_s0"].values
+    step = np.diff(quiet_scene.load_factors)[0]
+    assert np.all(np.isfinite(fail)) and np.ptp(fail) > 0
+    assert np.all(np.abs(fail - s0 * np.median(fail / s0)) <= 1.01 * step)
+    spread = ds["spread"].sel(outcome="failure_load_factor")
+    assert float(spread.sel(source="epistemic")) == float(spread.sel(source="total")) > 0
+    draws = posterior_draws(tree, ("K", "s0"))
+    again = rerun(tree, quiet_scene, 4)
+    assert np.array_equal(again["phi"], post["phi"].values[4])
+    assert int(post["draw"][4]) == realisation_inputs(draws, 0, 4)[1]
+    assert np.array_equal(mean["param_s0"].values, np.full(3, draws["s0"].mean()))
+
+
+@pytest.fixture(scope="module")
+def noisy_run(noisy_scene, tmp_path_factory):
+    store = tmp_path_factory.mktemp("noisy")
+    ds = ensemble(posterior(), noisy_scene, 4, n_mean=2, store=store, workers=1, progress=False,
+                  device=torch.device("cpu"))
+    return ds, store
+
+
+def test_the_store_resumes_after_a_crash(noisy_scene, noisy_run, tmp_path, monkeypatch):
+    """A crash after 3 of 6 realisations leaves 3 files (and a stale temporary one); the
+    re-run runs only the other 3 and gives the uninterrupted result bit for bit. Deleting
+    files re-runs just those; files already there are not rewritten."""
+    reference, store = noisy_run
+    calls = []
+    real = predictive.realise
+
+    def crashing(*args):
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        calls.append(args[1])
+        return real(*args)
+
+    monkeypatch.setattr(predictive, "realise", crashing)
+    with pytest.raises(KeyboardInterrupt):
+        ensemble(posterior(), noisy_scene, 4, n_mean=2, store=tmp_path, workers=1, progress=False)
+    (tmp_path / "posterior-00003.npz.x.tmp").write_bytes(b"half a file")
+    assert len(pending(posterior(), noisy_scene, 4, n_mean=2, store=tmp_path)) == 3
+    monkeypatch.setattr(predictive, "realise", real)
+    kept = {p.name: p.stat().st_mtime_ns for p in tmp_path.glob("*.npz")}
+    ds = ensemble(posterior(), noisy_scene, 4, n_mean=2, store=tmp_path, workers=1, progress=False)
+    assert {p.name: p.stat().st_mtime_ns for p in tmp_path.glob("*.npz") if p.name in kept} == kept
+    assert not list(tmp_path.glob("*.tmp")) and len(list(tmp_path.glob("*.npz"))) == 6
+    xr.testing.assert_identical(ds.drop_vars(TIMES), reference.drop_vars(TIMES))
+    (tmp_path / "mean-00001.npz").unlink()
+    assert pending(posterior(), noisy_scene, 4, n_mean=2, store=tmp_path) == [("mean", 1)]
+    with xr.open_dataset(tmp_path / "ensemble.nc", engine="h5netcdf") as saved:
+        xr.testing.assert_identical(saved.load().drop_vars(TIMES), reference.drop_vars(TIMES))
+    with pytest.raises(PlanMismatchError, match="another plan .*seed.*new directory"):
+        ensemble(posterior(), noisy_scene, 4, n_mean=2, store=tmp_path, seed=1, workers=1, progress=False)
+
+
+def test_device_is_an_argument(noisy_scene, noisy_run):
+    """device=torch.device('cpu') given explicitly: the run's tensors live there, outputs are
+    float64 and equal to the default-device run (nothing hard-codes the device)."""
+    ds, _ = noisy_run
+    draws = posterior_draws(posterior(), ("K", "s0"))
+    params, _, b = realisation_inputs(draws, 0, 1)
+    explicit = realise(noisy_scene, params, b, device=torch.device("cpu"))
+    default = realise(noisy_scene, params, b)
+    assert str(explicit["device"]) == "cpu" and str(explicit["u_dtype"]) == "torch.float64"
+    for k in ("phi", "path", "reaction", "crack_length"):
+        assert explicit[k].dtype == np.float64 and np.array_equal(explicit[k], default[k])
+    assert np.array_equal(ds["phi"].values[1], explicit["phi"])
+    assert all(ds[k].dtype == np.float64 for k in ("phi", "path", "probability", "spread"))
+
+
+def test_bad_input_names_the_fix(noisy_scene, tmp_path):
+    tree = posterior()
+    with pytest.raises(ValueError, match="no variable.*'s0'.*fit a model"):
+        ensemble(build_tree({"posterior": {"K": np.ones((1, 4))}}), noisy_scene, 4, store=tmp_path)
+    with pytest.raises(ValueError, match="at least 2"):
+        ensemble(tree, noisy_scene, 1, store=tmp_path)
+    with pytest.raises(ValueError, match="workers must be a positive integer"):
+        ensemble(tree, noisy_scene, 2, n_mean=0, store=tmp_path, workers=0)
+    with pytest.raises(ValueError, match="origin and direction must be 2D"):
+        FractureScene(print, ("K",), [1.0], 1.0, np.zeros((3, 2)), direction=(0.0, 0.0))
+    with pytest.raises(ValueError, match="dt must be positive"):
+        FractureScene(print, ("K",), [1.0], 0.0, np.zeros((3, 2)))
