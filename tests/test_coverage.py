@@ -1,0 +1,56 @@
+"""Coverage of credible intervals: the counter and its binomial tolerance (fast), and the
+90 % intervals of NUTS on the calibration plate (slow)."""
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy import stats
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
+from calibration_stats import binomial_band, central_interval, coverage, probability_in  # noqa: E402
+
+
+def test_coverage_counts_and_binomial_sd():
+    c = coverage([True] * 9 + [False])
+    assert (c["n"], c["covered"], c["rate"]) == (10, 9, 0.9)
+    assert c["sd"] == pytest.approx(math.sqrt(0.09 / 10))
+
+
+def test_probability_in_band_is_the_binomial_sum():
+    direct = sum(stats.binom.pmf(k, 100, 0.9) for k in range(85, 96))
+    assert probability_in(100, 0.9, 0.85, 0.95) == pytest.approx(direct, rel=1e-12)
+    lo, hi = binomial_band(100, 0.9, 0.99)
+    assert lo < 0.9 < hi and probability_in(100, 0.9, lo, hi) >= 0.99
+
+
+def test_exact_intervals_cover_at_the_nominal_rate():
+    """Conjugate Gaussian (mu* ~ N(0, 1), 10 observations of N(mu*, 1)), 90 % intervals from
+    400 exact posterior draws, 1000 replications: the observed rate lies in the 99.9 % binomial
+    range of Binomial(1000, 0.9) (draw quantiles add a little spread; deterministic seed)."""
+    rng = np.random.default_rng(11)
+    covered = []
+    for _ in range(1000):
+        mu = rng.standard_normal()
+        y = mu + rng.standard_normal(10)
+        draws = y.sum() / 11 + 11**-0.5 * rng.standard_normal(400)
+        lo, hi = central_interval(draws, 0.9)
+        covered.append(lo <= mu <= hi)
+    lo, hi = binomial_band(1000, 0.9, 0.999)
+    assert lo <= coverage(covered)["rate"] <= hi
+
+
+@pytest.mark.slow
+def test_nuts_intervals_cover(tmp_path_factory):
+    """50 replications on the calibration plate (truth from the prior; NUTS fits shared with
+    test_sbc.py within a session): each parameter's coverage lies in the 99 % range of
+    Binomial(50, 0.9) / 50, i.e. [0.78, 1.0] (sd sqrt(0.09 / 50) = 0.042)."""
+    import calibration_scene as cs
+
+    n = 50
+    records = cs.replications("nuts", n, root=tmp_path_factory.getbasetemp() / "calibration", log=None)
+    lo, hi = binomial_band(n, 0.9, 0.99)
+    for k in cs.names(False):
+        rate = coverage([r.get("params", {}).get(k, {}).get("covered", False) for r in records])["rate"]
+        assert lo <= rate <= hi, (k, rate)
