@@ -170,4 +170,4 @@ if __name__ == "__main__":
     parser.add_argument("--quick", action="store_true", help="50 + 50 NUTS iterations per case")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
-    main(args.quick)
+    main(args.quick, args.seed)

@@ -23,7 +23,6 @@ torch bond arithmetic only; tested on CPU (no GPU was available to test CUDA).
 from __future__ import annotations
 
 import hashlib
-import json
 from functools import partial
 
 import numpy as np
