@@ -56,9 +56,13 @@ def moduli_from_young(E, nu):
     return E / (3 * (1 - 2 * nu)), E / (2 * (1 + nu))
 
 
-class NonFiniteParameterError(ValueError):
-    """A modulus is NaN or inf: bad input, or a sampler's trajectory that blew up (which the
-    inference code treats as a rejected proposal)."""
+class ParameterRangeError(ValueError):
+    """A modulus outside (0, inf): bad input, or a sampler's or optimiser's trial point that
+    over- or underflowed (which the inference code treats as a rejected proposal)."""
+
+
+class NonFiniteParameterError(ParameterRangeError):
+    """A modulus is NaN or inf."""
 
 
 def check_modulus(name: str, value, n: int) -> torch.Tensor:
@@ -69,7 +73,7 @@ def check_modulus(name: str, value, n: int) -> torch.Tensor:
     if not bool(torch.all(torch.isfinite(v))):
         raise NonFiniteParameterError(f"{name} contains NaN or inf: pass finite moduli")
     if not bool(torch.all(v > 0)):
-        raise ValueError(f"{name} must be positive (got min {float(v.min()):g}): moduli "
+        raise ParameterRangeError(f"{name} must be positive (got min {float(v.min()):g}): moduli "
                          "are positive; sample them on a log scale")
     return v
 

@@ -1,6 +1,7 @@
 """Laplace approximation: exact on a linear Gaussian model; through the PD adjoint on a scene."""
 
 import math
+import warnings
 
 import numpy as np
 import pyro
@@ -129,3 +130,46 @@ def test_laplace_on_a_scene_and_gauss_newton_close_to_exact(plate):
     for k, truth in (("K", 3000.0), ("G", 1400.0)):
         draws = post[k].values.reshape(-1)
         assert abs(draws.mean() - truth) < 3 * draws.std()
+
+
+class _Potential:
+    """A duck-typed unconstrained space: ``initial`` and ``potential(z)``."""
+
+    def __init__(self, f, start):
+        self.initial = torch.tensor(start, dtype=torch.float64)
+        self.potential = f
+
+
+def test_map_search_warns_when_it_ends_on_a_kink():
+    """|z - 1| + z^2/100 has its minimum on a kink at z = 1 (|grad| there is about 1, not
+    0): the search must say so; the smooth (z - 1)^2 must not warn."""
+    from bayespd.infer.laplace import find_map
+    kink = _Potential(lambda z: (z - 1).abs().sum() + (z**2).sum() / 100, [4.0])
+    with pytest.warns(RuntimeWarning, match="gradient does not vanish"):
+        z, *_ = find_map(kink, progress=False)
+    assert abs(float(z[0]) - 1) < 1e-6
+    smooth = _Potential(lambda z: ((z - 1) ** 2).sum(), [4.0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        z, *_ = find_map(smooth, progress=False)
+    assert abs(float(z[0]) - 1) < 1e-6
+
+
+def test_map_search_backs_off_from_refused_parameters():
+    """A trial point the model refuses (a modulus over- or underflowed) is an infinite
+    potential, not an error: (z - 3)^2 with every z > 2 refused ends near 2, from below."""
+    from bayespd.infer.laplace import find_map
+    from bayespd.materials import ParameterRangeError
+
+    refused = []
+
+    def f(z):
+        if float(z.detach().max()) > 2:
+            refused.append(float(z.detach().max()))
+            raise ParameterRangeError("K must be positive")
+        return ((z - 3) ** 2).sum()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # it ends on the boundary, not a mode
+        z, *_ = find_map(_Potential(f, [0.0]), progress=False)
+    assert refused, "the search never tried a refused point: the test does not test"
+    assert 1.9 < float(z[0]) <= 2

@@ -81,7 +81,7 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
       e.g. a quick SVI fit) or of the Laplace approximation (``"laplace"``). NUTS uses
       ``target_accept`` and ``max_tree_depth``; HMC integrates trajectories of length
       ``trajectory_length`` (default 2 pi), i.e. ``trajectory_length / step_size`` leapfrog steps. A model that raises ``NotPositiveDefiniteError`` or
-      ``NonFiniteParameterError`` in a trajectory gets a divergence (proposal rejected); a
+      ``ParameterRangeError`` (a modulus over- or underflowed) in a trajectory gets a divergence (proposal rejected); a
       chain that diverges on every draw raises ``ChainDivergedError``. ``sample_stats``:
       ``lp``, ``energy``, ``step_size``, ``n_steps``, ``diverging``, ``acceptance_rate``
       (+ ``tree_depth`` for NUTS) per draw.

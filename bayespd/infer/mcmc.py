@@ -40,7 +40,7 @@ from pyro.ops.integrator import register_exception_handler
 from tqdm.auto import tqdm
 
 from bayespd.atomic import atomic_path
-from bayespd.materials import NonFiniteParameterError
+from bayespd.materials import ParameterRangeError
 from bayespd.sparse import NotPositiveDefiniteError
 
 from .kernels import KERNELS
@@ -129,7 +129,7 @@ def run_chain(spec: ChainSpec, chain: int, position: int = 0) -> dict:
     """One chain: ``{"draws": {site: (num_samples, ...)}, "stats": {...}, "grad_evals": n}``."""
     register_exception_handler(  # a numerical failure inside a trajectory is a divergence
         "bayespd_numerical_trouble",
-        lambda e: isinstance(e, (NotPositiveDefiniteError, NonFiniteParameterError)),
+        lambda e: isinstance(e, (NotPositiveDefiniteError, ParameterRangeError)),
         warn_on_overwrite=False,
     )
     path = None if spec.checkpoint is None else spec.checkpoint / f"chain{chain}.pt"
