@@ -118,7 +118,7 @@ def main(quick: bool, seed: int = 0):
                            "estimates": tik, "converged": res.converged}
     init = {k: torch.tensor(v) for k, v in tik.items()}
 
-    svi_steps, draws, warmup = (300, 100, 60) if quick else (1000, 250, 100)
+    svi_steps, draws, warmup = (300, 100, 60) if quick else (1000, 300, 200)
     svi = fit(model, data, "svi", svi_steps=svi_steps, num_samples=1000, seed=seed,
               init_values=init, dims=dims, coords=coords)
     nuts = fit(model, data, "nuts", num_samples=draws, num_warmup=warmup, num_chains=2, seed=seed,
