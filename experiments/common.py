@@ -8,6 +8,7 @@ import sys
 from datetime import datetime, timezone
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from bayespd.atomic import atomic_path
@@ -33,10 +34,21 @@ def write_atomic(path: Path, text: str) -> None:
         tmp.write_text(text)
 
 
+def plain(obj):
+    """numpy arrays, torch tensors and scalars inside dicts/lists as JSON lists and numbers."""
+    if isinstance(obj, dict):
+        return {k: plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [plain(v) for v in obj]
+    if isinstance(obj, (np.ndarray, np.generic, torch.Tensor)):
+        return np.asarray(obj).tolist()
+    return obj
+
+
 def write_metrics(name: str, metrics: dict) -> Path:
     """runs/<name>/metrics.json with the machine and date added."""
     metrics = dict(metrics, name=name, machine=f"{platform.machine()} {os.cpu_count()} cores",
                    date=datetime.now(timezone.utc).isoformat(timespec="seconds"))
     path = run_dir(name) / "metrics.json"
-    write_atomic(path, json.dumps(metrics, indent=2, default=float))
+    write_atomic(path, json.dumps(plain(metrics), indent=2, default=float))
     return path

@@ -1,5 +1,5 @@
 """Coverage of 90 % credible intervals: NUTS, SVI (full-rank Gaussian) and Laplace on the
-calibration plate (calibration_scene.py: truths drawn from the prior, noisy data simulated
+calibration plate (scenes/calibration_scene.py: truths drawn from the prior, noisy data simulated
 from them, delta known unless ``--free-delta``).
 
 For an exact posterior the equal-tailed 90 % interval covers the truth with probability 0.9
@@ -20,8 +20,8 @@ import time
 import numpy as np
 
 import common  # noqa: F401  (one torch thread; repository root on sys.path)
-import calibration_scene as cs
-from calibration_stats import binomial_band, coverage, probability_in
+from scenes import calibration_scene as cs
+from bayespd.infer.calibration import binomial_band, coverage, probability_in
 from common import run_dir, write_metrics
 
 LEVEL, LOW, HIGH = 0.9, 0.85, 0.95

@@ -34,7 +34,7 @@ from common import run_dir, write_metrics
 import bayespd as bp
 from bayespd.infer import NotPositiveDefiniteHessian, fit
 from bayespd.observe import locate
-from calibration_stats import central_interval
+from bayespd.infer.calibration import central_interval
 from models.elastic_plate import default_priors, elastic_plate
 
 L, W, CLAMP = 30.0, 14.0, 3.0           # mm

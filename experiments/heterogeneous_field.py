@@ -20,7 +20,7 @@ import torch
 from pyro import poutine
 
 from common import run_dir, write_metrics
-from tikhonov_square import DELTA, MU0, graded_moduli, noisy_fine_data, plain, square_scene
+from scenes.tikhonov_square import DELTA, MU0, graded_moduli, noisy_fine_data, square_scene
 
 import bayespd.sparse
 from bayespd.infer import fit
@@ -128,7 +128,7 @@ def main():
                             "hyper_parameters_fixed": HYPER, "gmrf_graph": "bonds within 1.5 h",
                             "laplace_hessian": "exact"}}
     metrics["wall_time_s"] = time.perf_counter() - start
-    path = write_metrics("heterogeneous_field", plain(metrics))
+    path = write_metrics("heterogeneous_field", metrics)
     for k, t in targets.items():
         print(f"{k:34s} {t['value']:.3g} (target {t['target']:g}) {'ok' if t['passed'] else 'MISSED'}")
     print(f"Tikhonov (discrepancy) mean {errors(tik, truth)['mean_rel_error']:.3f} max "

@@ -2,7 +2,7 @@
 
 For each of n prior draws (K, G, sigma; delta known, or with ``--free-delta`` also delta) the
 data are simulated from the model itself, so this checks the *inference*, not the model: data
-from a finer model are not wanted here (see calibration_scene.py). Each fit is one NUTS chain
+from a finer model are not wanted here (see scenes/calibration_scene.py). Each fit is one NUTS chain
 started at the MAP with the Laplace covariance as its mass matrix (100 warmup + 100 draws);
 the rank of the truth among 19 evenly thinned draws is uniform on 0..19 if the posterior is
 right. Ranks are binned into 5 bins of 4 values and tested by chi-square (4 df); target
@@ -19,8 +19,8 @@ import time
 import numpy as np
 
 import common  # noqa: F401  (one torch thread; repository root on sys.path)
-import calibration_scene as cs
-from calibration_stats import binomial_band, chi2_power_overconfident, chi2_uniformity, rank_counts
+from scenes import calibration_scene as cs
+from bayespd.infer.calibration import binomial_band, chi2_power_overconfident, chi2_uniformity, rank_counts
 from common import run_dir, write_metrics
 
 BINS, ALPHA = 5, 0.01

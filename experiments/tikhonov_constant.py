@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from common import run_dir, write_metrics
-from tikhonov_square import DELTA, FORCE, H, K0, MU0, noisy_fine_data, plain, square_scene
+from scenes.tikhonov_square import DELTA, FORCE, H, K0, MU0, noisy_fine_data, square_scene
 
 from bayespd.inverse.psi_choice import discrepancy, lcurve, psi_sweep
 from bayespd.inverse.tikhonov import tikhonov
@@ -98,7 +98,7 @@ def main():
                             "backend": "bayespd default sparse backend"},
                "noisy_fine_data": noisy_fine(scene)}
     metrics["wall_time_s"] = time.perf_counter() - start
-    path = write_metrics("tikhonov_constant", plain(metrics))
+    path = write_metrics("tikhonov_constant", metrics)
     for name, m in methods.items():
         print(f"{name:24s} K {m['rel_error']['K']:.2e}  G {m['rel_error']['G']:.2e}  "
               f"{m['iterations']} it  {m['wall_time_s']:.2f} s")

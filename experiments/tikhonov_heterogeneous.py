@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from common import run_dir, write_metrics
-from tikhonov_square import DELTA, GAMMA_K, GAMMA_MU, H, MU0, graded_moduli, noisy_fine_data, plain, square_scene
+from scenes.tikhonov_square import DELTA, GAMMA_K, GAMMA_MU, H, MU0, graded_moduli, noisy_fine_data, square_scene
 
 from bayespd.inverse.psi_choice import discrepancy, lcurve, psi_sweep
 from bayespd.inverse.tikhonov import tikhonov
@@ -112,7 +112,7 @@ def main():
                             "start": "mu_0 everywhere", "k": "eq 26, known", "psi": 0.0,
                             "data": "manufactured by the same model (verification)"}}
     metrics["wall_time_s"] = time.perf_counter() - start
-    path = write_metrics("tikhonov_heterogeneous", plain(metrics))
+    path = write_metrics("tikhonov_heterogeneous", metrics)
     for name, m in methods.items():
         print(f"{name:24s} max {m['max_rel_error']:.2e} mean {m['mean_rel_error']:.2e}  "
               f"{m['iterations']} it  {m['hessian_vector_products']} Hv  {m['wall_time_s']:.1f} s")

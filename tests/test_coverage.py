@@ -9,7 +9,7 @@ import pytest
 from scipy import stats
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
-from calibration_stats import binomial_band, central_interval, coverage, probability_in  # noqa: E402
+from bayespd.infer.calibration import binomial_band, central_interval, coverage, probability_in  # noqa: E402
 
 
 def test_coverage_counts_and_binomial_sd():
@@ -46,7 +46,7 @@ def test_nuts_intervals_cover(tmp_path_factory):
     """50 replications on the calibration plate (truth from the prior; NUTS fits shared with
     test_sbc.py within a session): each parameter's coverage lies in the 99 % range of
     Binomial(50, 0.9) / 50, i.e. [0.78, 1.0] (sd sqrt(0.09 / 50) = 0.042)."""
-    import calibration_scene as cs
+    from scenes import calibration_scene as cs
 
     n = 50
     records = cs.replications("nuts", n, root=tmp_path_factory.getbasetemp() / "calibration", log=None)

@@ -15,7 +15,7 @@ import bayespd as bp
 from bayespd.gmrf import GMRF
 from bayespd.infer import fit
 from bayespd.inverse.tikhonov import tikhonov
-from experiments.tikhonov_square import MU0, SIDE, graded_moduli, square_scene
+from experiments.scenes.tikhonov_square import MU0, SIDE, graded_moduli, square_scene
 from models.heterogeneous_field import heterogeneous_field, tikhonov_settings
 
 N_SIDE = 6

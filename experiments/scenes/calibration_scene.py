@@ -30,7 +30,7 @@ import pyro
 import torch
 
 import common
-from calibration_stats import central_interval, rank, thin
+from bayespd.infer.calibration import central_interval, rank, thin
 
 import bayespd as bp
 from bayespd.infer import NotPositiveDefiniteHessian, fit

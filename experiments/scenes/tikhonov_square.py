@@ -50,14 +50,3 @@ def noisy_fine_data(truth_of_x, points: np.ndarray, level: float = 0.01, seed: i
     sd = level * float(clean.abs().max())
     gen = torch.Generator().manual_seed(seed)
     return clean + sd * torch.randn(clean.shape, generator=gen), sd
-
-
-def plain(obj):
-    """numpy arrays and scalars inside dicts/lists as JSON-ready lists and Python numbers."""
-    if isinstance(obj, dict):
-        return {k: plain(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [plain(v) for v in obj]
-    if isinstance(obj, (np.ndarray, np.generic, torch.Tensor)):
-        return np.asarray(obj).tolist()
-    return obj
