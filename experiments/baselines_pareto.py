@@ -191,7 +191,6 @@ def main(h: float, m: int, sigma: float, deterministic_only: bool):
                "table": table(results),
                "methods": results}
     write_metrics("baselines_pareto", metrics)
-    print(f"wrote {out}")
 
 
 if __name__ == "__main__":

@@ -17,14 +17,13 @@ No inverse crime:
 """
 from __future__ import annotations
 
-import argparse
 import time
 
 import numpy as np
 import torch
 
 import common  # noqa: F401  (puts the repository root on sys.path for models/)
-from common import run_dir, write_metrics
+from common import quick_seed_arguments, run_dir, write_metrics
 
 import bayespd as bp
 from bayespd.infer import fit
@@ -209,14 +208,8 @@ def main(quick: bool, seed: int = 0):
                             "data": "stationary: exact invariant-law draws of the h/2 model (eps/4) + noise; "
                                     "trajectories: Euler-Maruyama at dt/4 kept every 4th step"}}
     write_metrics("brownian_bias", metrics)
-    for k, t in targets.items():
-        print(f"{k}: {t['value']} (target {t['target']}) {'PASS' if t['passed'] else 'FAIL'}")
-    print(f"total {wall:.1f} s; wrote {out}")
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="fewer SVI steps and NUTS draws (smoke run)")
-    parser.add_argument("--seed", type=int, default=0)
-    args = parser.parse_args()
+    args = quick_seed_arguments(__doc__, "fewer SVI steps and NUTS draws (smoke run)")
     main(args.quick, args.seed)

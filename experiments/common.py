@@ -1,6 +1,7 @@
 """Helpers shared by the experiment scripts: run folders and atomic metrics files."""
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import platform
@@ -46,9 +47,24 @@ def plain(obj):
 
 
 def write_metrics(name: str, metrics: dict) -> Path:
-    """runs/<name>/metrics.json with the machine and date added."""
+    """runs/<name>/metrics.json with the machine and date added; prints each target
+    (value, target, passed or MISSED), the count met and the wall time."""
     metrics = dict(metrics, name=name, machine=f"{platform.machine()} {os.cpu_count()} cores",
                    date=datetime.now(timezone.utc).isoformat(timespec="seconds"))
     path = run_dir(name) / "metrics.json"
     write_atomic(path, json.dumps(plain(metrics), indent=2, default=float))
+    targets = metrics.get("targets", {})
+    for k, t in targets.items():
+        print(f"  target {k}: {plain(t['value'])} (target {t['target']}) "
+              f"{'passed' if t['passed'] else 'MISSED'}")
+    print(f"{sum(bool(t['passed']) for t in targets.values())}/{len(targets)} targets met; "
+          f"{metrics.get('wall_time_s', float('nan')):.1f} s; wrote {path}")
     return path
+
+
+def quick_seed_arguments(doc: str, quick_help: str) -> argparse.Namespace:
+    """The command line of an experiment that takes ``--quick`` and ``--seed``."""
+    parser = argparse.ArgumentParser(description=doc.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help=quick_help)
+    parser.add_argument("--seed", type=int, default=0)
+    return parser.parse_args()

@@ -22,14 +22,13 @@ delta_posteriors.png}.
 """
 from __future__ import annotations
 
-import argparse
 import time
 
 import numpy as np
 import torch
 
 import common  # noqa: F401  (one torch thread; repository root on sys.path)
-from common import run_dir, write_metrics
+from common import quick_seed_arguments, run_dir, write_metrics
 
 import bayespd as bp
 from bayespd.infer import NotPositiveDefiniteHessian, fit
@@ -162,12 +161,8 @@ def main(quick: bool, seed: int = 0):
                             "nominal": NOMINAL, "nuts_draws": draws, "nuts_warmup": warmup,
                             "learnable": f"posterior sd / prior sd < {LEARNABLE_RATIO} and 90 % interval covers"}}
     write_metrics("delta_identifiability", metrics)
-    print(f"wrote {out}")
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="50 + 50 NUTS iterations per case")
-    parser.add_argument("--seed", type=int, default=0)
-    args = parser.parse_args()
+    args = quick_seed_arguments(__doc__, "50 + 50 NUTS iterations per case")
     main(args.quick, args.seed)

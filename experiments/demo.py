@@ -7,14 +7,13 @@ summary.md, figures) and prints one table.
 """
 from __future__ import annotations
 
-import argparse
 import time
 
 import numpy as np
 import torch
 
 import common  # noqa: F401  (puts the repository root on sys.path for models/)
-from common import run_dir, write_atomic, write_metrics
+from common import quick_seed_arguments, run_dir, write_atomic, write_metrics
 
 import bayespd as bp
 from bayespd.infer import fit, save, summary, to_inference_data
@@ -174,8 +173,5 @@ def render_table(truth, tik, methods):
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="fewer SVI steps and NUTS draws (smoke run)")
-    parser.add_argument("--seed", type=int, default=0)
-    args = parser.parse_args()
+    args = quick_seed_arguments(__doc__, "fewer SVI steps and NUTS draws (smoke run)")
     main(args.quick, args.seed)

@@ -202,9 +202,6 @@ def main(quick: bool):
     print("\norders (least squares):")
     for k, v in observed.items():
         print(f"  {k:24s} vs iso {v['iso']['least_squares']}  vs lattice {v['lattice']['least_squares']}")
-    for k, v in targets.items():
-        print(f"  target {k}: {v['value']} (target {v['target']}) passed={v['passed']}")
-    print(f"total {wall:.1f} s; wrote {out}")
 
 
 if __name__ == "__main__":

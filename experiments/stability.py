@@ -522,7 +522,6 @@ def main(quick: bool):
     write_metrics("stability", metrics)
     for k, v in summary.items():
         print(f"{k}: stable {v['stable']}, error {v['error']:.2e}, {v['wall_time_s']:.1f} s")
-    print(f"{sum(t['passed'] for t in targets.values())}/{len(targets)} targets; {wall:.1f} s; wrote {out}")
 
 
 if __name__ == "__main__":

@@ -98,7 +98,7 @@ def main():
                             "backend": "bayespd default sparse backend"},
                "noisy_fine_data": noisy_fine(scene)}
     metrics["wall_time_s"] = time.perf_counter() - start
-    path = write_metrics("tikhonov_constant", metrics)
+    write_metrics("tikhonov_constant", metrics)
     for name, m in methods.items():
         print(f"{name:24s} K {m['rel_error']['K']:.2e}  G {m['rel_error']['G']:.2e}  "
               f"{m['iterations']} it  {m['wall_time_s']:.2f} s")
@@ -107,7 +107,6 @@ def main():
         e = nf[rule]["rel_error"]
         print(f"noisy fine data, {rule:16s} K {e['K']:.2e}  G {e['G']:.2e}" +
               (f"  psi {nf[rule]['psi']:.3g}" if "psi" in nf[rule] else ""))
-    print(f"wrote {path}")
 
 
 if __name__ == "__main__":

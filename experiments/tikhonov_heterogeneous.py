@@ -112,7 +112,7 @@ def main():
                             "start": "mu_0 everywhere", "k": "eq 26, known", "psi": 0.0,
                             "data": "manufactured by the same model (verification)"}}
     metrics["wall_time_s"] = time.perf_counter() - start
-    path = write_metrics("tikhonov_heterogeneous", metrics)
+    write_metrics("tikhonov_heterogeneous", metrics)
     for name, m in methods.items():
         print(f"{name:24s} max {m['max_rel_error']:.2e} mean {m['mean_rel_error']:.2e}  "
               f"{m['iterations']} it  {m['hessian_vector_products']} Hv  {m['wall_time_s']:.1f} s")
@@ -120,7 +120,6 @@ def main():
         m = noisy[rule]
         print(f"noisy fine data, {rule:14s} max {m['max_rel_error']:.3f} mean {m['mean_rel_error']:.3f}" +
               (f"  psi {m['psi']:.3g} (attained {m['attained']})" if "psi" in m else ""))
-    print(f"wrote {path}")
 
 
 if __name__ == "__main__":

@@ -280,9 +280,6 @@ def main(quick: bool):
     }
     write_metrics("vfm_three_point_bending", metrics)
     figure(out, ms_rows, t3, t4)
-    for k, v in targets.items():
-        print(f"  target {k}: {v['value']:.3g} (<= {v['target']}) passed={v['passed']}")
-    print(f"total {wall:.0f} s; wrote {out}")
 
 
 if __name__ == "__main__":
