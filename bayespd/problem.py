@@ -114,9 +114,10 @@ class Scene:
         rhs = c.free(f)
         if c.has_prescribed:  # K u_c as the gradient of the form (also under no_grad)
             v = torch.zeros_like(c.prescribed, requires_grad=True)
+            differentiable = torch.is_grad_enabled()  # read before enable_grad overrides it
             with torch.enable_grad():
                 Ku = torch.autograd.grad(m.form(p, p["delta"], v, c.prescribed), v,
-                                         create_graph=torch.is_grad_enabled())[0]
+                                         create_graph=differentiable)[0]
             rhs = rhs - c.free(Ku)
         return rhs
 

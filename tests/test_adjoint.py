@@ -139,3 +139,22 @@ def test_per_particle_field_gradient_costs_one_solve(monkeypatch):
     direction = torch.randn(n, generator=torch.Generator().manual_seed(7)) * 100
     _, s1 = taylor_slopes(J, G.detach(), direction, G.grad)
     assert abs(s1[-1] - 2.0) < 0.1
+
+
+def test_prescribed_displacement_load_is_differentiable_only_when_asked():
+    """f_f - K_fc u_c: with grad enabled its derivative in K matches a central difference
+    (error O((dK/K)^2) ~ 1e-5 relative: plane-stress kappa is not linear in K); under no_grad
+    it carries no graph."""
+    p = bp.grid_2d(8.0, 4.0, h=1.0, thickness=1.0)
+    material = bp.LPS(p, bp.find_bonds(p, 2.5), plane="stress")
+    scene = bp.Scene(material, [bp.Dirichlet.layer(p, "left", 2.5),
+                                bp.Dirichlet(p.layer("right", 1.0), (0.01, None))],
+                     [bp.Load(p.layer("top", 1.0), (0.0, 1.0))])
+    K = torch.tensor(3000.0, dtype=torch.float64, requires_grad=True)
+    rhs = scene.free_load({"K": K, "G": 1400.0, "delta": 2.2})
+    w = torch.linspace(-1, 1, rhs.numel(), dtype=torch.float64)
+    (dK,) = torch.autograd.grad((w * rhs).sum(), K)
+    with torch.no_grad():
+        f = [(w * scene.free_load({"K": k, "G": 1400.0, "delta": 2.2})).sum() for k in (2990.0, 3010.0)]
+        assert not scene.free_load({"K": K, "G": 1400.0, "delta": 2.2}).requires_grad
+    assert float(dK) != 0 and abs(float(dK) - float(f[1] - f[0]) / 20.0) < 1e-4 * abs(float(dK))
