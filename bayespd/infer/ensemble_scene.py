@@ -16,6 +16,7 @@ eq 4 with the damage law of eq 2 or 5, ``bayespd.solvers.fracture``) and what to
 """
 from __future__ import annotations
 
+import contextlib
 import time
 from dataclasses import dataclass, field
 from typing import Callable
@@ -79,7 +80,7 @@ def realise(scene: FractureScene, params: dict, seed: int, device=None) -> dict:
     sparse.FACTOR_THREADS = 1  # CHOLMOD's BLAS: its sums depend on the thread count
     start, cpu = time.perf_counter(), time.process_time()
     try:
-        with torch.device(device or "cpu"):
+        with contextlib.nullcontext() if device in (None, "cpu") else torch.device(device):
             run = scene.build({k: float(params[k]) for k in scene.params}).run(
                 scene.load_factors, scene.dt, seed=int(seed), hold=scene.hold,
                 max_steps=scene.max_steps, path_threshold=scene.path_threshold)

@@ -7,12 +7,16 @@ V of eq 3 on the free dofs (the moving Dirichlet layers enter through f_int), mu
 law (critical stretch or smoothed step, irreversible; or the damage ODE, which uses dt).
 
 Step n (lambda_n from the ramp): one step of ``Langevin``'s linearly implicit theta-scheme with
-operator A = T + eps I, the tangent of ``quasistatic`` (bond-based: the Hessian with tensile
-geometric stiffness; LPS: the damaged linearised stiffness) taken when the damage state last
-changed and refactorised only when an intact fraction changes (by more than ``refactor_tol``),
-then the damage update with the new stretch. With ``hold`` the ramp waits while bonds break:
-lambda advances only after a step in which no bond broke, the stochastic counterpart of seed
-004 §5.2's re-solve until no new bond breaks.
+operator A = T + eps I, T the tangent of ``quasistatic`` (bond-based: the Hessian with tensile
+geometric stiffness; LPS: the damaged linearised stiffness) at the current intact fractions,
+then the damage update with the new stretch. A is factorised at the start and afresh only
+when the dofs solved for change (a piece came loose) or the bonds broken since touch more
+than ``max_rank`` dofs; in between, each change of the intact fractions (by more than
+``refactor_tol``) updates the factor by Woodbury (``woodbury.LocallyUpdated``): the bonds between particles
+of changed bonds take the tangent at the current u, the others keep the displacement of
+the last factorisation (their geometric stiffness is a fraction max(e/r) <= s0 of T). With
+``hold`` the ramp waits while bonds break: lambda advances only after a step in which no
+bond broke, the stochastic counterpart of seed 004 §5.2's re-solve until no new bond breaks.
 
 Deterministic limit: with C = sigma^2 I and the mobility M = sigma^2 / eta fixed, theta = 1,
 each step is (I + a A) U' = U + a (f(U) + A U) + sqrt(2 dt) sigma xi, a = M dt; for
@@ -32,6 +36,10 @@ from bayespd.solvers.dynamics import NumericalInstabilityError
 from bayespd.solvers.langevin import Langevin
 from bayespd.solvers.noise import Covariance
 from bayespd.solvers.quasistatic import LoadedBody
+from bayespd.solvers.woodbury import LocallyUpdated, Refined
+
+
+REFRESH_ITERATIONS = 8  # conjugate-gradient iterations per step beyond which the factor is renewed
 
 
 @dataclass
@@ -80,22 +88,23 @@ class StochasticFracture:
         self.body, self.damage, self.C, self.eta, self.theta = body, damage, covariance, eta, theta
 
     def run(self, load_factors, dt: float, seed, hold: bool = True, max_steps: int | None = None,
-            path_threshold: float = 0.4, refactor_tol: float = 1e-2) -> Realisation:
+            path_threshold: float = 0.4, refactor_tol: float = 1e-2, max_rank: int = 512) -> Realisation:
         """March through ``load_factors`` (one per step; with ``hold`` a step that breaks a bond
         (intact fraction crossing 1/2) is repeated at the same factor, up to ``max_steps``
-        steps in all, default 10 per factor). The operator is refactorised when an intact
-        fraction has moved by more than ``refactor_tol`` since the last factorisation (the
-        sharp law: whenever a bond breaks); a stale operator is stiffer than the force, which
-        keeps the scheme stable. ``seed``: an int or a ``torch.Generator``; the same seed
-        reproduces the run bit for bit. Raises NumericalInstabilityError on a blow-up."""
+        steps in all, default 10 per factor). The operator follows the intact fractions when
+        one has moved by more than ``refactor_tol`` since it last did (the sharp law: whenever
+        a bond breaks), by a Woodbury update of rank up to ``max_rank`` (0: factorise at
+        every change). ``seed``: an int or a ``torch.Generator``; the same seed reproduces
+        the run bit for bit. Raises NumericalInstabilityError on a blow-up."""
         body, law = self.body, self.damage
         lams = np.asarray(load_factors, dtype=float)
         max_steps = max_steps or 10 * len(lams)
         gen = seed if isinstance(seed, torch.Generator) else torch.Generator().manual_seed(int(seed))
         state = law.init(body.n_bonds)
-        intact = factored = law.intact(state)
+        intact = operated = law.intact(state)
         u = torch.zeros(body.particles.n, body.particles.dim)
-        step = self._stepper(intact, u)
+        base = self._factorised(intact, u, max_rank)
+        step, A = self._stepper(intact, u, base)
         rec = {k: [] for k in ("t", "lam", "reac", "broken", "length")}
         k = n = 0
         length = 0.0
@@ -109,9 +118,11 @@ class StochasticFracture:
             state = law.update(state, body.kinematics.stretch(u), dt)
             intact, before = law.intact(state), intact
             broke = not torch.equal(intact < 0.5, before < 0.5)
-            if float((intact - factored).abs().max()) > refactor_tol:
-                factored = intact
-                step = self._stepper(intact, u)
+            stale = getattr(A, "iterations", 0) > REFRESH_ITERATIONS
+            if stale or float((intact - operated).abs().max()) > refactor_tol:
+                operated = intact
+                base = self._factorised(intact, u, max_rank) if stale else self._updated(base, intact, u, max_rank)
+                step, A = self._stepper(intact, u, base)
             if broke:
                 phi = damage_index(body.particles, body.bonds, intact)
                 length = crack_length(crack_path(body.particles, phi, path_threshold))
@@ -127,14 +138,33 @@ class StochasticFracture:
                            crack_path(body.particles, phi, path_threshold), u, intact,
                            None if isinstance(seed, torch.Generator) else int(seed))
 
-    def _stepper(self, intact, u):
-        """step(u, lam, intact, dt, gen) -> u: one theta-step with the force at the given
-        intact fractions and the operator A = T + eps I at (this ``intact``, u), factorised
-        once (``LoadedBody.operator``)."""
+    def _factorised(self, intact, u, max_rank: int) -> "_Operated":
+        """A fresh operator at (intact, u) on the dofs still solved for."""
         body = self.body
         active = body.active(intact)
+        A = LocallyUpdated(body.operator(intact, active, u), max_rank) if len(active) else None
+        return _Operated(A, A, intact, u, active)
+
+    def _updated(self, base: "_Operated", intact, u, max_rank: int) -> "_Operated":
+        """The operator at ``intact``: base's factor updated by the change since it was made
+        (the tangent of the damaged zone at u, the rest at base's u), or a fresh one when the active dofs changed or the change is
+        too large for a Woodbury update."""
+        active = self.body.active(intact)
+        if base.factored is not None and np.array_equal(active, base.active):
+            change = self.body.operator_change(base.intact, intact, active, base.u, u)
+            A = base.factored.changed(change)
+            if A is not None:
+                return _Operated(A, base.factored, base.intact, base.u, active)
+        return self._factorised(intact, u, max_rank)
+
+    def _stepper(self, intact, u, operated: "_Operated"):
+        """(step, A): step(u, lam, intact, dt, gen) -> u, one theta-step with the force at the
+        given intact fractions and the operator A on ``operated``'s active dofs: its
+        ``LocallyUpdated`` operator, or for a bond-based body the exact tangent at u, solved by
+        conjugate gradients preconditioned with it (``Refined``)."""
+        body, active = self.body, operated.active
         if len(active) == 0:  # everything came loose: nothing left to move
-            return lambda u, *_: u
+            return (lambda u, *_: u), None
         idx = torch.as_tensor(active)
         C = self.C
         if len(active) < C.n:  # restrict C to the dofs still solved for
@@ -147,7 +177,11 @@ class StochasticFracture:
             u.view(-1)[idx] = U
             return body.residual(u, current["lam"], current["intact"]).view(-1)[idx]
 
-        langevin = Langevin(force, C, self.eta, operator=body.operator(intact, active, u))
+        A = operated.A
+        if body.geometric:  # the exact tangent at u, the factor of a stale one preconditions it
+            exact = body.operator(intact, active, u)
+            A = Refined(lambda v: exact @ v, A)
+        langevin = Langevin(force, C, self.eta, operator=A)
 
         def step(u, lam, intact_now, dt, gen):
             current.update(u=u, lam=lam, intact=intact_now)
@@ -156,4 +190,16 @@ class StochasticFracture:
             out.view(-1)[idx] = U
             return out
 
-        return step
+        return step, A
+
+
+@dataclass
+class _Operated:
+    """The operator ``A`` of the steps, the freshly factorised one it was updated from
+    (``factored``), and the intact fractions, displacement and active dofs it was made at."""
+
+    A: LocallyUpdated | None
+    factored: LocallyUpdated | None
+    intact: torch.Tensor
+    u: torch.Tensor
+    active: np.ndarray

@@ -17,7 +17,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from bayespd.assembly import to_numpy
-from bayespd.solvers.linear import spd_factor
+from bayespd.solvers.linear import shifted_factor
 
 
 class Covariance:
@@ -72,9 +72,10 @@ class Covariance:
         """x = (I + b C A)^-1 r for a sparse SPD A: with B = I + b diag(d) A,
         B^-1 r = (diag(d)^-1 + b A)^-1 (r / d) (one sparse Cholesky), and the low-rank part by
         Woodbury, (B + b G G^T A)^-1 = B^-1 - W S^-1 G^T A B^-1 with W = b B^-1 G and
-        S = I_m + G^T A W (m extra solves once, then one m x m LU)."""
+        S = I_m + G^T A W (m extra solves once, then one m x m LU). A: a scipy sparse matrix
+        or a ``woodbury.LocallyUpdated`` (then its factor is updated, not made afresh)."""
         if self._diag:
-            factor = spd_factor(sp.diags(1 / self.d) + b * A)
+            factor = shifted_factor(A, 1 / self.d, b)
 
             def base(r):
                 return factor.solve(_col(1 / self.d, r) * r)

@@ -152,20 +152,79 @@ class LoadedBody:
         values[diag] += self.eps
         return sub, torch.from_numpy(values)
 
+    def operator_change(self, before, after, active: np.ndarray, u: torch.Tensor | None = None,
+                        u_after: torch.Tensor | None = None) -> sp.csr_matrix:
+        """operator(after) - operator(before) on the ``active`` dofs: a sparse change on the
+        dofs near the bonds whose intact fraction changed, for ``woodbury.LocallyUpdated``.
+        Bond-based: assembled from those bonds and the bonds between their end particles,
+        whose tangent moves from u to ``u_after`` (default u), so the geometric stiffness of
+        the damaged zone, where pieces hang on their last bonds, follows the displacement."""
+        before, after = torch.as_tensor(before), torch.as_tensor(after)
+        if not self.geometric:
+            sub, entries, _ = self._restricted(active)
+            return sub.matrix(self._tangent(after, u)[entries] - self._tangent(before, u)[entries]).tocsr()
+        i, j = self.bonds.i, self.bonds.j
+        changed = torch.nonzero(after != before).reshape(-1).numpy()
+        ends = np.zeros(self.particles.n, dtype=bool)
+        ends[i[changed]] = ends[j[changed]] = True
+        bonds = np.flatnonzero(ends[i] & ends[j])
+        H = (self._bond_hessians(u_after if u_after is not None else u, bonds) * after.numpy()[bonds, None, None]
+             - self._bond_hessians(u, bonds) * before.numpy()[bonds, None, None])
+        pos = self._blocks[bonds].reshape(-1)
+        local = np.full(self.material.pattern.n, -1)
+        local[active] = np.arange(len(active))
+        rows, cols = local[self.material.pattern.rows[pos]], local[self.material.pattern.cols[pos]]
+        keep = (rows >= 0) & (cols >= 0)
+        values = np.stack([H, H, -H, -H], 1).reshape(-1)
+        return sp.csr_matrix((values[keep], (rows[keep], cols[keep])), shape=(len(active), len(active)))
+
     def _tangent(self, intact, u) -> np.ndarray:
         """Values of T on the material's pattern."""
         intact = torch.as_tensor(intact)
         if not self.geometric:
             terms = damaged_terms(self.material, self.params, self.delta, intact)
             return numeric_values(self.material.pattern, terms).numpy().copy()
-        d = self.particles.dim
-        y, r = self.kinematics.deformed(torch.zeros(self.particles.n, d) if u is None else u)
-        n = (y / r[:, None]).numpy()
-        c = torch.clamp(1 - self.kinematics.length / r, min=0).numpy()[:, None, None]
-        k = np.broadcast_to((self.forces.k * intact).detach().numpy(), (self.n_bonds,))[:, None, None]
-        H = k * (c * np.eye(d) + (1 - c) * n[:, :, None] * n[:, None, :])
-        return np.bincount(self._blocks.reshape(-1), np.stack([H, H, -H, -H], 1).reshape(-1),
-                           minlength=self.material.pattern.nnz)
+        H = self._bond_hessians(u) * intact.numpy()[:, None, None]
+        N, d, i, j = self.particles.n, self.particles.dim, self.bonds.i, self.bonds.j
+        S = np.stack([np.bincount(i, H[:, a, c], minlength=N) + np.bincount(j, H[:, a, c], minlength=N)
+                      for a in range(d) for c in range(d)], 1)  # ii: the sum over the bonds of i
+        return np.concatenate([-H.reshape(-1), S.reshape(-1)])[self._tangent_sources]
+
+    def _bond_hessians(self, u, bonds=slice(None)) -> np.ndarray:
+        """Bond-based: the intact Hessian blocks k [c I + (1 - c) n n^T] (b, d, d) of
+        ``bonds`` at u (default 0), c = max(e / r, 0) (module docstring)."""
+        d, i, j = self.particles.dim, self.bonds.i[bonds], self.bonds.j[bonds]
+        xi = self.kinematics.xi[bonds].numpy()
+        y = xi if u is None else xi + (u[j] - u[i]).numpy()
+        r = np.sqrt(np.einsum("ba,ba->b", y, y))
+        n = y / r[:, None]
+        c = np.maximum(1 - self.kinematics.length[bonds].numpy() / r, 0)
+        k = np.broadcast_to(self.forces.k.detach().numpy(), (self.n_bonds,))[bonds]
+        H = ((k * (1 - c))[:, None] * n)[:, :, None] * n[:, None, :]
+        for a in range(d):
+            H[:, a, a] += k * c
+        return H
+
+    @cached_property
+    def _tangent_sources(self) -> np.ndarray:
+        """For each pattern entry, its place in [-H (bonds, d, d), S (particles, d, d)]: an
+        off-diagonal block belongs to one bond (H symmetric serves ij and ji), a diagonal
+        block is the sum S over a particle's bonds."""
+        d, a, p = self.particles.dim, np.arange(self.particles.dim), np.arange(self.particles.n)
+        rows = np.broadcast_to(d * p[:, None, None] + a[:, None], (len(p), d, d))
+        cols = np.broadcast_to(d * p[:, None, None] + a[None, :], (len(p), d, d))
+        diagonal = self.material.pattern.position(rows.reshape(-1), cols.reshape(-1))
+        if len(np.unique(self._blocks[:, 2])) != self._blocks[:, 2].size:
+            raise ValueError("a bond is listed twice: give each pair of particles one bond")
+        sources = np.full(self.material.pattern.nnz, -1)
+        bond_entries = np.arange(self.n_bonds * d * d)
+        sources[self._blocks[:, 2].reshape(-1)] = bond_entries
+        sources[self._blocks[:, 3].reshape(-1)] = bond_entries
+        sources[diagonal] = self.n_bonds * d * d + np.arange(len(diagonal))
+        if np.any(sources < 0):
+            raise ValueError("the pattern has entries no bond makes: a bond-based pattern is "
+                             "the bonds' blocks and the diagonal")
+        return sources
 
     @cached_property
     def _blocks(self) -> np.ndarray:

@@ -1,0 +1,133 @@
+"""Solves with a sparse SPD operator after a local change, without refactorising it.
+
+When bonds break, the operator of the implicit steps changes only on the dofs of their end
+particles (and, for LPS, of their neighbours): A = A0 + Delta, Delta supported on rows R with
+k = |R| << n. With a factor P of M0 = diag(s) + b A0, M = M0 + E D E^T (E the columns of the
+identity on R, D = b Delta_RR) and the Woodbury identity (Golub & Van Loan 2013, §2.1.4),
+
+    M^-1 r = x0 - W (I + D W_R)^-1 D x0_R,   x0 = P^-1 r,  W = P^-1 E,  W_R = E^T W,
+
+one solve with P plus O(n k) work, after one LU of the k x k capacitance I + D W_R per
+change. det(M) = det(M0) det(I + D W_R), so the sign of that determinant is checked (an
+indefinite change with an even number of negative eigenvalues passes: ``Refined``'s
+conjugate gradients, which use this as preconditioner, check every direction's curvature). A column of W is
+solved once per row that joins R and kept while R grows (bonds only break), so a run of many
+small changes costs one factorisation plus one solve per changed dof.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+
+from bayespd.solvers.linear import spd_factor
+from bayespd.sparse import Factor, NotPositiveDefiniteError, PCGFactor
+
+
+class LocallyUpdated:
+    """The symmetric operator A = A0 + delta (scipy sparse n x n; delta None or supported on
+    few rows), with ``A @ v`` and ``shifted_factor(s, b)``, a factor of diag(s) + b A made
+    from the one of diag(s) + b A0 (shared by every operator ``changed`` from the same A0).
+    ``max_rank``: the most rows a change may touch before ``changed`` asks for a new A0."""
+
+    def __init__(self, A0, max_rank: int = 512, delta=None, _bases=None):
+        self.A0, self.delta, self.max_rank = sp.csr_matrix(A0), delta, int(max_rank)
+        self.shape = self.A0.shape
+        self._bases = {} if _bases is None else _bases
+
+    def changed(self, delta) -> "LocallyUpdated | None":
+        """A0 + delta, delta (sparse, symmetric) the whole change since A0; None when it
+        touches more than ``max_rank`` rows (factorise a new A0 instead)."""
+        delta = sp.csr_matrix(delta)
+        delta.eliminate_zeros()
+        if delta.shape != self.shape:
+            raise ValueError(f"the change must be {self.shape[0]} x {self.shape[1]} like A0")
+        if np.count_nonzero(np.diff(delta.indptr)) > self.max_rank:
+            return None
+        return LocallyUpdated(self.A0, self.max_rank, delta if delta.nnz else None, self._bases)
+
+    def __matmul__(self, v):
+        out = self.A0 @ v
+        return out if self.delta is None else out + self.delta @ v
+
+    def shifted_factor(self, s: np.ndarray, b: float) -> Factor:
+        """A factor (``.solve``) of diag(s) + b A; raises NotPositiveDefiniteError if the
+        change made it indefinite."""
+        key = (float(b), np.asarray(s, dtype=np.float64).tobytes())
+        if key not in self._bases:
+            # solved many times: METIS's smaller fill makes each solve ~25 % faster than AMD's
+            factor = spd_factor(sp.diags(s) + b * self.A0, ordering="metis")
+            self._bases = {key: _Base(factor, self.shape[0])}  # the latest only
+        base = self._bases[key]
+        if self.delta is None:
+            return base.factor
+        rows = np.flatnonzero(np.diff(self.delta.indptr))
+        W, order = base.columns(rows)
+        D = b * self.delta[order][:, order]
+        lu, piv = S = sla.lu_factor(np.eye(len(order)) + D @ W[order])
+        flips = np.count_nonzero(piv != np.arange(len(piv)))
+        if not (np.all(np.isfinite(lu)) and np.prod(np.sign(np.diag(lu))) * (-1) ** flips > 0):
+            raise NotPositiveDefiniteError("the operator is not positive definite after the "
+                                           "change (det(I + D W_R) <= 0): factorise it afresh")
+
+        def solve(r):
+            x0 = np.asarray(base.factor.solve(r))
+            return x0 - W @ sla.lu_solve(S, D @ x0[order])
+
+        return Factor(solve)
+
+
+class _Base:
+    """The factor P of diag(s) + b A0 and the columns P^-1 e_r solved so far, in the order
+    their rows were first touched (stored as rows of a buffer that doubles when full)."""
+
+    def __init__(self, factor: Factor, n: int):
+        self.factor, self.n, self.k = factor, n, 0
+        self.order = np.zeros(0, dtype=np.int64)
+        self._Wt = np.empty((16, n))
+
+    def columns(self, rows: np.ndarray):
+        """(W, order): P^-1 E (n, k) for every row solved so far, after solving the new ``rows``."""
+        new = np.setdiff1d(rows, self.order)
+        if len(new):
+            E = np.zeros((self.n, len(new)))
+            E[new, np.arange(len(new))] = 1.0
+            cols = np.asarray(self.factor.solve(E)).reshape(self.n, -1).T
+            if self.k + len(new) > len(self._Wt):
+                grown = np.empty((2 * (self.k + len(new)), self.n))
+                grown[: self.k] = self._Wt[: self.k]
+                self._Wt = grown
+            self._Wt[self.k: self.k + len(new)] = cols
+            self.k += len(new)
+            self.order = np.concatenate([self.order, new])
+        return self._Wt[: self.k].T, self.order
+
+
+class Refined:
+    """An SPD operator known exactly only by its product ``matvec`` (numpy (n,) or (n, k)),
+    with ``approx`` (a ``LocallyUpdated`` close to it: the factor of a stale tangent) as the
+    preconditioner: ``shifted_factor(s, b)`` solves diag(s) + b A by conjugate gradients to
+    ``rtol``; ``iterations`` is the count of the latest solve (how stale ``approx`` is)."""
+
+    def __init__(self, matvec, approx: LocallyUpdated, rtol: float = 1e-8, maxiter: int = 200):
+        self.matvec, self.approx, self.rtol, self.maxiter = matvec, approx, rtol, maxiter
+        self.shape = approx.shape
+        self._factors = []
+
+    def __matmul__(self, v):
+        return self.matvec(v)
+
+    @property
+    def iterations(self) -> int:
+        return max((f.iterations for f in self._factors), default=0)
+
+    def shifted_factor(self, s: np.ndarray, b: float) -> Factor:
+        s = np.asarray(s, dtype=np.float64)
+        pre = self.approx.shifted_factor(s, b)
+
+        def product(x):
+            return s.reshape(-1, *([1] * (x.ndim - 1))) * x + b * self.matvec(x)
+
+        factor = PCGFactor(product, pre.solve, self.shape[0], self.rtol, self.maxiter)
+        self._factors = [factor]
+        return factor
