@@ -8,15 +8,18 @@ law (critical stretch or smoothed step, irreversible; or the damage ODE, which u
 
 Step n (lambda_n from the ramp): one step of ``Langevin``'s linearly implicit theta-scheme with
 operator A = T + eps I, T the tangent of ``quasistatic`` (bond-based: the Hessian with tensile
-geometric stiffness; LPS: the damaged linearised stiffness) at the current intact fractions,
-then the damage update with the new stretch. A is factorised at the start and afresh only
-when the dofs solved for change (a piece came loose) or the bonds broken since touch more
-than ``max_rank`` dofs; in between, each change of the intact fractions (by more than
-``refactor_tol``) updates the factor by Woodbury (``woodbury.LocallyUpdated``): the bonds between particles
-of changed bonds take the tangent at the current u, the others keep the displacement of
-the last factorisation (their geometric stiffness is a fraction max(e/r) <= s0 of T). With
-``hold`` the ramp waits while bonds break: lambda advances only after a step in which no
-bond broke, the stochastic counterpart of seed 004 §5.2's re-solve until no new bond breaks.
+geometric stiffness; LPS: the damaged linearised stiffness) taken when the intact fractions
+last changed (by more than ``refactor_tol``; the sharp law: whenever a bond breaks), then
+the damage update with the new stretch. A change costs no factorisation: a factor made at
+the start is updated by Woodbury for the changed bonds (``woodbury.LocallyUpdated``; exact
+for LPS), and for a bond-based body, whose T also moves with u through its geometric part
+(a fraction <= max(e/r) ~ s0 of T), conjugate gradients solve with the exact T,
+preconditioned by that factor (``woodbury.Refined``, about two iterations a step). The
+factor is made afresh only when the dofs solved for change (a piece came loose), when the
+bonds changed since touch more than ``max_rank`` dofs, or when conjugate gradients need
+more than REFRESH_ITERATIONS. With ``hold`` the ramp waits while bonds break: lambda
+advances only after a step in which no bond broke, the stochastic counterpart of seed
+004 §5.2's re-solve until no new bond breaks.
 
 Deterministic limit: with C = sigma^2 I and the mobility M = sigma^2 / eta fixed, theta = 1,
 each step is (I + a A) U' = U + a (f(U) + A U) + sqrt(2 dt) sigma xi, a = M dt; for
@@ -146,9 +149,9 @@ class StochasticFracture:
         return _Operated(A, A, intact, u, active)
 
     def _updated(self, base: "_Operated", intact, u, max_rank: int) -> "_Operated":
-        """The operator at ``intact``: base's factor updated by the change since it was made
-        (the tangent of the damaged zone at u, the rest at base's u), or a fresh one when the active dofs changed or the change is
-        too large for a Woodbury update."""
+        """The factor at ``intact``: base's, updated by the change since it was made (the
+        damaged zone's tangent at u, the rest at base's u), or a fresh one when the active
+        dofs changed or the change is too large for a Woodbury update."""
         active = self.body.active(intact)
         if base.factored is not None and np.array_equal(active, base.active):
             change = self.body.operator_change(base.intact, intact, active, base.u, u)
@@ -195,8 +198,9 @@ class StochasticFracture:
 
 @dataclass
 class _Operated:
-    """The operator ``A`` of the steps, the freshly factorised one it was updated from
-    (``factored``), and the intact fractions, displacement and active dofs it was made at."""
+    """The factored operator ``A`` of the steps (LPS) or their preconditioner (bond-based),
+    the fresh factorisation it was updated from (``factored``), and the intact fractions,
+    displacement and active dofs that one was made at."""
 
     A: LocallyUpdated | None
     factored: LocallyUpdated | None
