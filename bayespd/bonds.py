@@ -17,7 +17,8 @@ class Bonds:
     """Each interacting pair once (i < j): ``xi = x[j] - x[i]`` and ``length = |xi|``.
 
     Pairs are kept up to ``delta_max + h/2`` so that every horizon ``delta <= delta_max``
-    is represented by :func:`partial_volume` alone.
+    is represented by :func:`partial_volume` alone; ``rule`` is its ramp ("linear" or
+    "smooth").
     """
 
     i: np.ndarray
@@ -26,6 +27,7 @@ class Bonds:
     length: np.ndarray
     h: float
     delta_max: float
+    rule: str = "linear"
 
     @property
     def n(self) -> int:
@@ -34,16 +36,20 @@ class Bonds:
     def without(self, remove: np.ndarray) -> "Bonds":
         """The bonds where the boolean mask ``remove`` is false."""
         keep = ~np.asarray(remove, dtype=bool)
-        return Bonds(self.i[keep], self.j[keep], self.xi[keep], self.length[keep], self.h, self.delta_max)
+        return Bonds(self.i[keep], self.j[keep], self.xi[keep], self.length[keep], self.h, self.delta_max,
+                     self.rule)
 
     def weight(self, delta) -> torch.Tensor:
         """Partial-volume fraction of each bond at horizon ``delta`` (see partial_volume)."""
         check_horizon(delta, self.h, self.delta_max)
-        return partial_volume(torch.as_tensor(self.length), delta, self.h)
+        return partial_volume(torch.as_tensor(self.length), delta, self.h, self.rule)
 
 
-def find_bonds(particles: Particles, delta_max: float) -> Bonds:
-    """All pairs closer than ``delta_max + h/2``, found once with a k-d tree."""
+def find_bonds(particles: Particles, delta_max: float, rule: str = "linear") -> Bonds:
+    """All pairs closer than ``delta_max + h/2``, found once with a k-d tree; ``rule``: the
+    partial-volume ramp in delta (see :func:`partial_volume`)."""
+    if rule not in RULES:
+        raise ValueError(f"unknown partial-volume rule {rule!r}: use one of {RULES}")
     h = particles.h
     if not delta_max >= h:
         raise ValueError(f"delta_max={delta_max} must be at least the grid spacing h={h}")
@@ -51,16 +57,20 @@ def find_bonds(particles: Particles, delta_max: float) -> Bonds:
     order = np.lexsort((pairs[:, 1], pairs[:, 0]))
     i, j = pairs[order, 0].astype(np.int64), pairs[order, 1].astype(np.int64)
     xi = particles.x[j] - particles.x[i]
-    return Bonds(i, j, xi, np.linalg.norm(xi, axis=1), h, float(delta_max))
+    return Bonds(i, j, xi, np.linalg.norm(xi, axis=1), h, float(delta_max), rule)
 
 
-def partial_volume(length: torch.Tensor, delta, h: float) -> torch.Tensor:
-    """Fraction of a neighbour cell inside the horizon, piecewise linear in delta.
+RULES = ("linear", "smooth")
 
-    1 for |xi| <= delta - h/2, 0 for |xi| >= delta + h/2, linear between, so every quantity
-    built from it is continuous in delta with a gradient almost everywhere.
-    """
-    return torch.clamp((torch.as_tensor(delta) + h / 2 - length) / h, 0.0, 1.0)
+
+def partial_volume(length: torch.Tensor, delta, h: float, rule: str = "linear") -> torch.Tensor:
+    """Fraction of a neighbour cell inside the horizon: 1 for |xi| <= delta - h/2, 0 for
+    |xi| >= delta + h/2, and between them t = (delta + h/2 - |xi|) / h ("linear": every
+    quantity built from it is continuous in delta, with kinks where some |xi| = delta +- h/2)
+    or the smoothstep 3t^2 - 2t^3 ("smooth": C1 in delta, so a posterior over delta has no
+    kinks to shorten HMC trajectories; the same mean over the ramp, int_0^1 = 1/2)."""
+    t = torch.clamp((torch.as_tensor(delta) + h / 2 - length) / h, 0.0, 1.0)
+    return t * t * (3 - 2 * t) if rule == "smooth" else t
 
 
 def check_horizon(delta, h: float, delta_max: float) -> None:

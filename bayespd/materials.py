@@ -252,7 +252,7 @@ class LPS(_Material):
         K, G = moduli["K"], moduli["G"]
         d, c = self.dim, _C_DEV[self.dim]
         r, n, cell = self._lattice_family
-        w = self.influence(r, delta, params) * partial_volume(r, delta, self.bonds.h)
+        w = self.influence(r, delta, params) * partial_volume(r, delta, self.bonds.h, self.bonds.rule)
         m = (w * r**2).sum() * cell
         sum_e2 = (w * (n[:, axis] ** 2 * r) ** 2).sum() * cell
         return 0.5 * (self.kappa(K, G) - c * G / d**2), 0.5 * c * G / m * sum_e2
@@ -303,7 +303,7 @@ class BondBased(_Material):
         """(0, W) for a unit uniaxial strain along ``axis`` at a particle with a complete
         lattice family: W = 1/4 c sum omega beta n_a^4 |xi| V."""
         r, n, cell = self._lattice_family
-        w = self.influence(r, delta, params) * partial_volume(r, delta, self.bonds.h)
+        w = self.influence(r, delta, params) * partial_volume(r, delta, self.bonds.h, self.bonds.rule)
         W = 0.25 * self.micromodulus(moduli["K"], delta, params) * (w * n[:, axis] ** 4 * r).sum() * cell
         return torch.zeros_like(W), W
 

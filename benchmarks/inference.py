@@ -19,6 +19,7 @@ data from the model itself (a benchmark, not a result). NUTS on ``5k`` is not ru
 default: its time is extrapolated from the demo's gradients per effective draw.
 
     python benchmarks/inference.py [--scenes demo 5k] [--repeat 10] [--draws 300 --warmup 200 --chains 2]
+                                   [--rule linear|smooth]
 """
 from __future__ import annotations
 
@@ -46,15 +47,15 @@ from timing import best  # noqa: E402
 ESS_TARGET = 400
 
 
-def demo_problem():
+def demo_problem(rule="linear"):
     points, y, sigma = demo.synthetic_data(demo.TRUTH, 0)
-    return demo.plate(demo.H_MODEL, demo.DELTA_MAX, points), y, sigma
+    return demo.plate(demo.H_MODEL, demo.DELTA_MAX, points, rule), y, sigma
 
 
-def fine_problem(h=0.4):
+def fine_problem(h=0.4, rule="linear"):
     model_particles = demo.plate(h, 3 * h).particles
     points = model_particles.x[model_particles.x[:, 0] > demo.CLAMP]
-    scene = demo.plate(h, 3 * h, points)
+    scene = demo.plate(h, 3 * h, points, rule)
     with torch.no_grad():
         clean = scene.observe(scene.solve({**{k: demo.TRUTH[k] for k in ("K", "G")}, "delta": 2.5 * h}))
     sigma = 0.01 * float(clean.abs().max())
@@ -111,12 +112,14 @@ def main():
     parser.add_argument("--warmup", type=int, default=200)
     parser.add_argument("--chains", type=int, default=2)
     parser.add_argument("--no-nuts", action="store_true")
+    parser.add_argument("--rule", default="linear", choices=["linear", "smooth"],
+                        help="partial-volume ramp in delta of the model (bayespd.bonds.partial_volume)")
     args = parser.parse_args()
     print(f"load average at start {os.getloadavg()[0]:.2f}; torch threads {torch.get_num_threads()}; "
-          f"backend {bp.sparse.default_backend()}")
+          f"backend {bp.sparse.default_backend()}; partial volumes {args.rule}")
     nuts = None
     for name in args.scenes:
-        scene, y, sigma = demo_problem() if name == "demo" else fine_problem()
+        scene, y, sigma = demo_problem(args.rule) if name == "demo" else fine_problem(rule=args.rule)
         t_bare, t_pyro, model = gradient_rates(scene, y, sigma, args.repeat)
         print(f"{name}: {scene.particles.n} particles, {len(y)} points, {scene.material.bonds.n} bonds; "
               f"gradient: bare {1e3 * t_bare:.1f} ms ({1 / t_bare:.0f}/s), in Pyro {1e3 * t_pyro:.1f} ms "

@@ -29,10 +29,10 @@ NOMINAL = {"K": 3900.0, "G": 1300.0}  # a handbook guess for the prior centre, n
 NAMES = ["K", "G", "delta", "sigma"]
 
 
-def plate(h: float, delta_max: float, points=None) -> bp.Scene:
+def plate(h: float, delta_max: float, points=None, rule: str = "linear") -> bp.Scene:
     p = bp.grid_2d(L, W, h, thickness=THICK)
     p = p.where(np.linalg.norm(p.x - [L / 2, W / 2], axis=1) > R)
-    material = bp.LPS(p, bp.find_bonds(p, delta_max), plane="stress")
+    material = bp.LPS(p, bp.find_bonds(p, delta_max, rule), plane="stress")
     observation = None if points is None else bp.Observation(p, points)
     return bp.Scene(material, [bp.Dirichlet.layer(p, "left", CLAMP)],
                     [bp.Load(p.layer("right", LOAD_DEPTH), FORCE)], observation)
