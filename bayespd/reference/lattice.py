@@ -19,15 +19,17 @@ import bayespd as bp
 from bayespd.reference.fem import VOIGT
 
 
-def lattice_stiffness(m: float, K: float, G: float, dim: int = 2, plane: str = "stress") -> np.ndarray:
+def lattice_stiffness(m: float, K: float, G: float, dim: int = 2, plane: str = "stress",
+                      rule: str = "linear") -> np.ndarray:
     """Voigt tensor C_m (``fem.VOIGT`` order) stored by an interior particle of the grid.
 
     Computed from the energy density of the central particle of a grid with h = 1 and
-    delta = m under the unit Voigt strains and their pairwise sums (W is quadratic in eps).
+    delta = m under the unit Voigt strains and their pairwise sums (W is quadratic in eps);
+    ``rule``: the partial-volume ramp (``bayespd.bonds.partial_volume``).
     """
     n = 2 * math.ceil(m) + 5  # the central particle's family is complete
     p = bp.grid_2d(n, n, 1.0) if dim == 2 else bp.grid_3d(n, n, n, 1.0)
-    material = bp.LPS(p, bp.find_bonds(p, m), plane=plane)
+    material = bp.LPS(p, bp.find_bonds(p, m, rule), plane=plane)
     centre = int(np.argmin(np.linalg.norm(p.x - n / 2, axis=1)))
     x = torch.as_tensor(p.x)
     params = {"K": K, "G": G}

@@ -41,15 +41,15 @@ def params(delta: float) -> dict:
     return {"K": float(K), "G": float(G), "delta": float(delta)}
 
 
-def pd_scene(h: float, delta_max: float, points=None, **lps_options) -> bp.Scene:
+def pd_scene(h: float, delta_max: float, points=None, rule: str = "linear", **lps_options) -> bp.Scene:
     """LPS plane-stress scene on a cell-centred grid of spacing h (h must divide 2 mm).
 
     A particle belongs to a patch when its cell centre lies in the patch; with h dividing the
-    patch corners, the union of those cells is the patch itself. ``lps_options`` go to
-    ``bp.LPS`` (e.g. ``surface_correction=True``).
+    patch corners, the union of those cells is the patch itself. ``rule``: the bonds'
+    partial-volume ramp; ``lps_options`` go to ``bp.LPS`` (e.g. ``surface_correction=True``).
     """
     p = bp.grid_2d(LENGTH, WIDTH, h, thickness=THICKNESS)
-    material = bp.LPS(p, bp.find_bonds(p, delta_max), plane="stress", **lps_options)
+    material = bp.LPS(p, bp.find_bonds(p, delta_max, rule), plane="stress", **lps_options)
     dirichlet = [bp.Dirichlet(PIN.contains(p.x), (0.0, 0.0)),
                  bp.Dirichlet(ROLLER.contains(p.x), (None, 0.0))]
     loads = [bp.Load(LOAD.contains(p.x), (0.0, -FORCE))]
