@@ -17,6 +17,7 @@ eq 4 with the damage law of eq 2 or 5, ``bayespd.solvers.fracture``) and what to
 from __future__ import annotations
 
 import contextlib
+import gc
 import time
 from dataclasses import dataclass, field
 from typing import Callable
@@ -90,6 +91,7 @@ def realise(scene: FractureScene, params: dict, seed: int, device=None) -> dict:
     finally:
         torch.set_num_threads(threads)
         sparse.FACTOR_THREADS = factor_threads
+        gc.collect()  # factors held in closures are cyclic garbage: free them before the next run
     reaction = np.asarray(run.reaction, dtype=np.float64)
     load = (np.linalg.norm(reaction, axis=1) if scene.load_component is None
             else reaction[:, scene.load_component])

@@ -57,7 +57,7 @@ class LocallyUpdated:
         if key not in self._bases:
             # solved many times: METIS's smaller fill makes each solve ~25 % faster than AMD's
             factor = spd_factor(sp.diags(s) + b * self.A0, ordering="metis")
-            self._bases = {key: _Base(factor, self.shape[0])}  # the latest only
+            self._bases = {key: _Base(factor, self.shape[0], self.max_rank)}  # the latest only
         base = self._bases[key]
         if self.delta is None:
             return base.factor
@@ -79,12 +79,13 @@ class LocallyUpdated:
 
 class _Base:
     """The factor P of diag(s) + b A0 and the columns P^-1 e_r solved so far, in the order
-    their rows were first touched (stored as rows of a buffer that doubles when full)."""
+    their rows were first touched (rows of a buffer allocated as they come, up to
+    ``capacity``, then doubling)."""
 
-    def __init__(self, factor: Factor, n: int):
-        self.factor, self.n, self.k = factor, n, 0
+    def __init__(self, factor: Factor, n: int, capacity: int):
+        self.factor, self.n, self.k, self.capacity = factor, n, 0, max(int(capacity), 16)
         self.order = np.zeros(0, dtype=np.int64)
-        self._Wt = np.empty((16, n))
+        self._Wt = np.empty((0, n))
 
     def columns(self, rows: np.ndarray):
         """(W, order): P^-1 E (n, k) for every row solved so far, after solving the new ``rows``."""
@@ -94,7 +95,8 @@ class _Base:
             E[new, np.arange(len(new))] = 1.0
             cols = np.asarray(self.factor.solve(E)).reshape(self.n, -1).T
             if self.k + len(new) > len(self._Wt):
-                grown = np.empty((2 * (self.k + len(new)), self.n))
+                rows = self.capacity if self.k + len(new) <= self.capacity else 2 * (self.k + len(new))
+                grown = np.empty((rows, self.n))
                 grown[: self.k] = self._Wt[: self.k]
                 self._Wt = grown
             self._Wt[self.k: self.k + len(new)] = cols
@@ -123,10 +125,10 @@ class Refined:
 
     def shifted_factor(self, s: np.ndarray, b: float) -> Factor:
         s = np.asarray(s, dtype=np.float64)
-        pre = self.approx.shifted_factor(s, b)
+        pre, matvec = self.approx.shifted_factor(s, b), self.matvec  # no cycle through self
 
         def product(x):
-            return s.reshape(-1, *([1] * (x.ndim - 1))) * x + b * self.matvec(x)
+            return s.reshape(-1, *([1] * (x.ndim - 1))) * x + b * matvec(x)
 
         factor = PCGFactor(product, pre.solve, self.shape[0], self.rtol, self.maxiter)
         self._factors = [factor]
