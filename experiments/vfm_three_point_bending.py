@@ -244,6 +244,7 @@ def table4(scene, u, work_interior, truth, m, rule, tikhonov_bands):
             sc = tpb.pd_scene(H, delta, rule=rule)
             sc.observation = bp.ParticleObservation(sc.particles, obs)
             t = tikhonov(sc, u[torch.as_tensor(obs)], hybrid, fixed={"delta": delta},
+                         bounds={k: (v / 10, 10 * v) for k, v in hybrid.items()},  # a decade each way
                          sigma=1e-4, gtol=1e-9, maxiter=100)
             row["tikhonov"] = {"estimates": t.params, "rel_error": errors(t.params, truth),
                                "evaluations": t.evaluations, "wall_time_s": t.wall_time_s}
