@@ -112,6 +112,11 @@ class Pattern:
         self.rows_t = torch.as_tensor(self.rows)
         self.cols_t = torch.as_tensor(self.cols)
 
+    def __getstate__(self):
+        """Pickled without CHOLMOD's analysis (it does not pickle): the next factorisation
+        redoes it, so a scene can be sent to worker processes after it has solved."""
+        return {**self.__dict__, "_symbolic": None}
+
     @property
     def nnz(self) -> int:
         return len(self.rows)

@@ -19,11 +19,15 @@ def default_priors(scene, nominal: dict, noise_scale: float) -> dict:
     return elastic_priors(scene, nominal, noise_scale)
 
 
-def elastic_plate(scene, nominal: dict, noise_scale: float, priors: dict | None = None):
-    """A Pyro model ``model(y=None, mask=None)`` for observations y of shape (points, dim)."""
-    chosen = choose(default_priors(scene, nominal, noise_scale), priors, scene)
+class ElasticPlate:
+    """The Pyro model ``model(y=None, mask=None)`` for observations y of shape (points, dim);
+    a module-level class, so it pickles and its NUTS chains can run in worker processes."""
 
-    def model(y=None, mask=None):
+    def __init__(self, scene, priors: dict):
+        self.scene, self.priors = scene, priors
+
+    def __call__(self, y=None, mask=None):
+        scene, chosen = self.scene, self.priors
         params = {k: pyro.sample(k, chosen[k]) for k in scene.param_names}
         sigma = pyro.sample("sigma", chosen["sigma"])
         mean = scene.observe(scene.solve(params))
@@ -33,4 +37,7 @@ def elastic_plate(scene, nominal: dict, noise_scale: float, priors: dict | None 
         with pyro.plate("point", mean.shape[0], dim=-2), pyro.plate("component", mean.shape[1], dim=-1):
             pyro.sample("y", likelihood, obs=y)
 
-    return model
+
+def elastic_plate(scene, nominal: dict, noise_scale: float, priors: dict | None = None) -> ElasticPlate:
+    """The model with the default priors, any of them replaced by ``priors``."""
+    return ElasticPlate(scene, choose(default_priors(scene, nominal, noise_scale), priors, scene))

@@ -87,3 +87,19 @@ def test_processes_refuse_a_model_that_does_not_pickle():
 
     with pytest.raises(ValueError, match="does not pickle.*chains='sequential'"):
         fit(closure, {"y": Y}, **dict(RUN, chains="processes"))
+
+
+def test_the_plate_model_pickles_after_its_scene_has_solved():
+    """models.elastic_plate is a module-level class and a scene drops CHOLMOD's analysis when
+    pickled, so NUTS chains of the plate run in worker processes; the copy solves the same."""
+    import pickle
+
+    from conftest import plate_scene
+    from models.elastic_plate import ElasticPlate, elastic_plate
+
+    scene = plate_scene(nx=10, ny=6, delta_max=2.5)
+    params = {"K": 3000.0, "G": 1400.0, "delta": 2.5}
+    u = scene.solve(params)
+    model = pickle.loads(pickle.dumps(elastic_plate(scene, {"K": 3000.0, "G": 1400.0}, 1e-3)))
+    assert isinstance(model, ElasticPlate)
+    assert torch.equal(model.scene.solve(params), u)

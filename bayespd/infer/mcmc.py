@@ -12,7 +12,7 @@ deadlocks in a forked child once the parent has factorised. A spawned worker rec
 chain's spec by pickle, so the model must be importable (a module-level function or an
 instance of a module-level class); a closure (``models.elastic_plate`` returns one) runs
 sequentially under ``"auto"`` and is refused under ``"processes"``. Each worker uses
-``cores // workers`` intra-op threads and the parent's default dtype. Draws are bit-identical
+``cores // workers`` intra-op and BLAS threads and the parent's default dtype. Draws are bit-identical
 either way.
 
 **Checkpoints.** With ``checkpoint=<dir>``, chain ``c`` writes ``<dir>/chain<c>.pt``
@@ -37,6 +37,7 @@ import pyro
 import torch
 from pyro.infer.mcmc.util import potential_grad
 from pyro.ops.integrator import register_exception_handler
+from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
 from bayespd.atomic import atomic_path
@@ -190,7 +191,8 @@ def _worker(args):
     payload, chain, threads, dtype = args
     torch.set_num_threads(threads)
     torch.set_default_dtype(dtype)
-    return run_chain(pickle.loads(payload), chain, position=chain)
+    with threadpool_limits(threads):  # every BLAS (numpy's, CHOLMOD's): workers must not oversubscribe
+        return run_chain(pickle.loads(payload), chain, position=chain)
 
 
 def usable_cores() -> int:

@@ -9,10 +9,10 @@ identity on R, D = b Delta_RR) and the Woodbury identity (Golub & Van Loan 2013,
 
 one solve with P plus O(n k) work, after one LU of the k x k capacitance I + D W_R per
 change. det(M) = det(M0) det(I + D W_R), so the sign of that determinant is checked (an
-indefinite change with an even number of negative eigenvalues passes: ``Refined``'s
-conjugate gradients, which use this as preconditioner, check every direction's curvature). A column of W is
-solved once per row that joins R and kept while R grows (bonds only break), so a run of many
-small changes costs one factorisation plus one solve per changed dof.
+indefinite change with an even number of negative eigenvalues passes it; ``Refined``'s
+conjugate gradients, which precondition with this, check every direction's curvature). A
+column of W is solved once per row that joins R and kept while R grows (bonds only break),
+so a run of many small changes costs one factorisation plus one solve per changed dof.
 """
 from __future__ import annotations
 
