@@ -70,7 +70,9 @@ def test_stationary_marginal_gradient(scene):
     partial-volume kinks at |xi| +- h/2), and a Taylor remainder of slope 2."""
     marginal = StationaryMarginal(scene)
     scale = torch.tensor([TRUTH[k] for k in (*MATERIAL, "eta", "sigma")])
-    y = marginal(tensors(MATERIAL), TRUTH["eta"], TRUTH["sigma"]).sample((2,)).detach()
+    with torch.random.fork_rng():  # a fixed draw: the check must not depend on earlier tests
+        torch.manual_seed(0)
+        y = marginal(tensors(MATERIAL), TRUTH["eta"], TRUTH["sigma"]).sample((2,)).detach()
 
     def ll(x):
         v = x * scale
