@@ -292,11 +292,12 @@ def noise_optimal_fields(scene, params: dict) -> list:
     """The two virtual fields w_k = K^-1 K^-1 K_k u (k = s, d; K = K(params) on the free
     dofs, K_k = dK/da_k, u = K^-1 f) for which the VFM equations w_k^T (K(a) y - f) = 0 are
     the normal equations of least squares on the displacements y (derived here: d u/d a_k
-    = -K^-1 K_k u, so J_k^T (y - u) = -w_k^T (K y - f)). With fields made at a consistent
-    estimate, the closed form is one Gauss-Newton step to the maximum-likelihood estimate
-    under iid Gaussian noise at every particle, which attains the Cramer-Rao bound (the
-    noise-optimised special fields of Avril et al. 2004, for the PD model). Costs three
-    solves with one factorisation each; the fields vanish on the constrained dofs."""
+    = -K^-1 K_k u, so J_k^T (y - u) = -w_k^T (K y - f)). Made at a consistent estimate,
+    the closed form with them is a one-step estimator, efficient as the noise vanishes;
+    remade at each new estimate it converges to the maximum-likelihood estimate under iid
+    Gaussian noise at the free dofs (the noise-optimised special fields of Avril, Grédiac
+    and Pierron 2004, for the PD model). Costs three solves with one factorisation each; the
+    fields vanish on the constrained dofs."""
     c, material = scene.constraints, scene.material
     p = {k: torch.as_tensor(v) for k, v in params.items()}
     with torch.no_grad():
