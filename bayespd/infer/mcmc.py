@@ -29,6 +29,7 @@ import multiprocessing
 import os
 import pickle
 import random
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -191,6 +192,7 @@ def _worker(args):
     payload, chain, threads, dtype = args
     torch.set_num_threads(threads)
     torch.set_default_dtype(dtype)
+    tqdm.set_lock(threading.RLock())  # tqdm's default lock makes semaphores nobody releases
     with threadpool_limits(threads):  # every BLAS (numpy's, CHOLMOD's): workers must not oversubscribe
         return run_chain(pickle.loads(payload), chain, position=chain)
 
