@@ -65,6 +65,27 @@ def moduli_from_constants(material, a_s, a_d):
     return float(K), float(G)
 
 
+PROBES = [(1.0, 1.0), (3.0, 1.0), (2.0, 3.0)]  # (K, G): two split K into K_s, K_d; one checks
+
+
+def stiffness_times(material, params: dict, w: torch.Tensor) -> torch.Tensor:
+    """K(params) w for fields w (M, N, dim), K assembled once (no autograd)."""
+    q = {k: v for k, v in params.items() if k != "delta"}
+    A = material.pattern.matrix(material.numeric_stiffness(q, params["delta"]))
+    W = w.reshape(w.shape[0], -1).numpy().T  # (n_dofs, M)
+    return torch.as_tensor(np.ascontiguousarray((A @ W).T)).reshape(w.shape)
+
+
+def constant_parts(material, fixed: dict, w: torch.Tensor):
+    """(K_s w, K_d w, [K(p) w for the PROBES]) for fields w (M, N, dim): K = a_s K_s + a_d K_d
+    for homogeneous moduli, so two probe moduli give both parts; ``fixed`` holds delta and
+    any other parameter of K."""
+    Ku = [stiffness_times(material, dict(fixed, K=torch.tensor(K), G=torch.tensor(G)), w) for K, G in PROBES]
+    C = torch.tensor([[float(c) for c in pd_constants(material, K, G)] for K, G in PROBES[:2]])
+    Ps, Pd = (part.reshape(w.shape) for part in torch.linalg.solve(C, torch.stack(Ku[:2]).reshape(2, -1)))
+    return Ps, Pd, Ku
+
+
 def _describe(x, k):
     return f"particle {k} at {np.round(x[k], 6).tolist()}"
 
@@ -138,26 +159,12 @@ class VirtualWork:
                     "support patches, or multiply it by a weight that is zero there "
                     "(virtual_fields.scaled)")
 
-    def _params(self, K, G) -> dict:
-        return dict(self.fixed, K=torch.as_tensor(float(K)), G=torch.as_tensor(float(G)))
-
-    def _stiffness_times(self, params: dict, w: torch.Tensor) -> torch.Tensor:
-        """K(params) w for fields w (M, N, dim), with K assembled once (no autograd)."""
-        q = {k: v for k, v in params.items() if k != "delta"}
-        pattern = self.material.pattern
-        A = pattern.matrix(self.material.numeric_stiffness(q, params["delta"]))
-        W = w.reshape(w.shape[0], -1).numpy().T  # (n_dofs, M)
-        return torch.as_tensor(np.ascontiguousarray((A @ W).T)).reshape(w.shape)
-
     def _basis(self):
-        """K_s u*, K_d u* from K(p) u* at two moduli (K is affine-linear in (a_s, a_d)), and a
-        third point to check that linearity (it fails e.g. with the surface correction)."""
-        probes = [(1.0, 1.0), (3.0, 1.0), (2.0, 3.0)]
-        Ku = [self._stiffness_times(self._params(K, G), self.ustar) for K, G in probes]
-        C = torch.tensor([[float(c) for c in pd_constants(self.material, K, G)] for K, G in probes])
-        sol = torch.linalg.solve(C[:2], torch.stack(Ku[:2]).reshape(2, -1))
-        self.Ps, self.Pd = (s.reshape(self.ustar.shape) for s in sol)
-        predicted = C[2, 0] * self.Ps + C[2, 1] * self.Pd
+        """K_s u*, K_d u* (``constant_parts``) and a third probe to check that K is linear
+        in (a_s, a_d) (it is not e.g. with the surface correction)."""
+        self.Ps, self.Pd, Ku = constant_parts(self.material, self.fixed, self.ustar)
+        a_s, a_d = pd_constants(self.material, *PROBES[2])
+        predicted = float(a_s) * self.Ps + float(a_d) * self.Pd
         scale = Ku[2].abs().max()
         self.linear = bool((predicted - Ku[2]).abs().max() <= 1e-9 * scale)
         size = sum(k.abs() for k in Ku)
@@ -298,16 +305,11 @@ def noise_optimal_fields(scene, params: dict) -> list:
     Gaussian noise at the free dofs (the noise-optimised special fields of Avril, Grédiac
     and Pierron 2004, for the PD model). Costs three solves with one factorisation each; the
     fields vanish on the constrained dofs."""
-    c, material = scene.constraints, scene.material
+    c = scene.constraints
     p = {k: torch.as_tensor(v) for k, v in params.items()}
     with torch.no_grad():
         u = scene.solve(p)
-        probes = [(1.0, 1.0), (3.0, 1.0)]
-        pattern = material.pattern
-        Ku = [pattern.matrix(material.numeric_stiffness({"K": torch.tensor(K), "G": torch.tensor(G)}, p["delta"]))
-              @ u.reshape(-1).numpy() for K, G in probes]
-        C = np.array([[float(a) for a in pd_constants(material, K, G)] for K, G in probes])
-        Kk = np.linalg.solve(C, np.stack(Ku))  # rows: K_s u, K_d u (K is linear in a)
-        z = scene.solve_free(p, torch.as_tensor(Kk.T[c.free_dofs]))
-        w = scene.solve_free(p, z)
+        Ps, Pd, _ = constant_parts(scene.material, {k: v for k, v in p.items() if k not in ("K", "G")}, u[None])
+        Kk = torch.stack([c.free(Ps[0]), c.free(Pd[0])], 1)  # K_s u, K_d u on the free dofs
+        w = scene.solve_free(p, scene.solve_free(p, Kk))
     return [lambda x, w=c.embed(w[:, k]).numpy(): w for k in range(2)]
