@@ -45,6 +45,9 @@ class Bonds:
         return partial_volume(torch.as_tensor(self.length), delta, self.h, self.rule)
 
 
+RULES = ("linear", "smooth")  # partial-volume ramps in delta (see partial_volume)
+
+
 def find_bonds(particles: Particles, delta_max: float, rule: str = "linear") -> Bonds:
     """All pairs closer than ``delta_max + h/2``, found once with a k-d tree; ``rule``: the
     partial-volume ramp in delta (see :func:`partial_volume`)."""
@@ -58,9 +61,6 @@ def find_bonds(particles: Particles, delta_max: float, rule: str = "linear") -> 
     i, j = pairs[order, 0].astype(np.int64), pairs[order, 1].astype(np.int64)
     xi = particles.x[j] - particles.x[i]
     return Bonds(i, j, xi, np.linalg.norm(xi, axis=1), h, float(delta_max), rule)
-
-
-RULES = ("linear", "smooth")
 
 
 def partial_volume(length: torch.Tensor, delta, h: float, rule: str = "linear") -> torch.Tensor:

@@ -182,7 +182,8 @@ class StochasticFracture:
 
         A = operated.A
         if body.geometric:  # the exact tangent at u, the factor of a stale one preconditions it
-            exact = body.operator(intact, active, u)
+            fresh = A.delta is None and operated.u is u  # just factorised at (intact, u)
+            exact = A.A0 if fresh else body.operator(intact, active, u)
             A = Refined(lambda v: exact @ v, A)
         langevin = Langevin(force, C, self.eta, operator=A)
 

@@ -114,14 +114,14 @@ class Refined:
     def __init__(self, matvec, approx: LocallyUpdated, rtol: float = 1e-8, maxiter: int = 200):
         self.matvec, self.approx, self.rtol, self.maxiter = matvec, approx, rtol, maxiter
         self.shape = approx.shape
-        self._factors = []
+        self._latest = None
 
     def __matmul__(self, v):
         return self.matvec(v)
 
     @property
     def iterations(self) -> int:
-        return max((f.iterations for f in self._factors), default=0)
+        return 0 if self._latest is None else self._latest.iterations
 
     def shifted_factor(self, s: np.ndarray, b: float) -> Factor:
         s = np.asarray(s, dtype=np.float64)
@@ -130,6 +130,5 @@ class Refined:
         def product(x):
             return s.reshape(-1, *([1] * (x.ndim - 1))) * x + b * matvec(x)
 
-        factor = PCGFactor(product, pre.solve, self.shape[0], self.rtol, self.maxiter)
-        self._factors = [factor]
-        return factor
+        self._latest = PCGFactor(product, pre.solve, self.shape[0], self.rtol, self.maxiter)
+        return self._latest
