@@ -1,63 +1,86 @@
-"""One stochastic fracture realisation of the crack-ensemble plate (seed 002 eq 4 with
-damage, ``bayespd.infer.ensemble_plate``): wall time with the operator updated by Woodbury
-(``max_rank``, default 512) against a fresh factorisation at every change of the intact
-bonds (``max_rank=0``), and where the time goes (factorisations, steps, bonds broken).
+"""Stochastic fracture realisations of the crack-ensemble plate (seed 002 eq 4 with damage,
+``bayespd.infer.ensemble_plate``), as a worker of the ensemble runs them (``realise``: one
+torch and one BLAS thread): wall time against error for each way of treating the operator.
 
-Both runs take the same steps and break the same bonds (conjugate gradients solve the same
-exact tangent to 1e-8); the output checks it. One torch thread and one BLAS thread, as a
-worker of the ensemble runs it.
+A run is ``TANGENT:MAX_RANK``: the exact tangent (conjugate gradients preconditioned by the
+Woodbury-updated factor) or the lagged one (that factor itself, a W-method), updated by
+Woodbury up to MAX_RANK rows (0: a fresh factorisation at every change of the intact
+bonds). The first run listed is the reference: with the same Brownian seeds, every other
+run's failure load factor, peak load and crack length are compared with it seed by seed,
+and the difference of their means with its Monte-Carlo standard error (the error an
+ensemble of that many realisations would see).
 
-    python benchmarks/fracture.py [--side 100] [--max-rank 512 0]
+    python benchmarks/fracture.py [--side 100] [--runs exact:512 lagged:512] [--seeds 3 4]
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
-import torch
-from threadpoolctl import threadpool_limits
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bayespd import sparse  # noqa: E402
 from bayespd.infer.ensemble_plate import notched_plate  # noqa: E402
+from bayespd.infer.ensemble_scene import realise  # noqa: E402
 from bayespd.solvers import fracture  # noqa: E402
 
+PARAMS = {"K": 2886.0, "s0": 0.0094}  # the posterior mean of experiments/crack_ensemble.py
+OUTCOMES = ("failure_load_factor", "peak_load", "final_crack_length")
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--side", type=float, default=100.0, help="plate side in mm (h = 1 mm): 100 -> 10k particles")
-    parser.add_argument("--max-rank", type=int, nargs="+", default=[512, 0])
-    args = parser.parse_args()
-    torch.set_num_threads(1)
-    sparse.FACTOR_THREADS = 1
-    scene = notched_plate(side=args.side, h=1.0, steps=50, sigma=1500.0)
-    driver = scene.build({"K": 2886.0, "s0": 0.0094})
-    counted = {"n": 0}
-    factorised = fracture.StochasticFracture._factorised
+
+def _counting_factorisations():
+    """Count StochasticFracture's fresh factorisations (a dict whose "n" they increment)."""
+    counted, factorised = {"n": 0}, fracture.StochasticFracture._factorised
 
     def counting(self, *a):
         counted["n"] += 1
         return factorised(self, *a)
 
     fracture.StochasticFracture._factorised = counting
-    print(f"load average {os.getloadavg()[0]:.2f}; {len(scene.x)} particles; backend {sparse.default_backend()}")
-    runs = []
-    with threadpool_limits(1):
-        for rank in args.max_rank:
+    return counted
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--side", type=float, default=100.0, help="plate side in mm (h = 1 mm): 100 -> 10k particles")
+    parser.add_argument("--runs", nargs="+", default=["exact:512", "lagged:512"], help="TANGENT:MAX_RANK, reference first")
+    parser.add_argument("--seeds", type=int, nargs="+", default=list(range(3, 11)))
+    args = parser.parse_args()
+    scene = notched_plate(side=args.side, h=1.0, steps=50, sigma=1500.0)
+    counted = _counting_factorisations()
+    print(f"load average {os.getloadavg()[0]:.2f}; {len(scene.x)} particles; backend {sparse.default_backend()}; "
+          f"seeds {args.seeds}")
+    results = {}
+    for spec in args.runs:
+        tangent, rank = spec.split(":")
+        variant = dataclasses.replace(scene, tangent=tangent, max_rank=int(rank))
+        rows = []
+        for seed in args.seeds:
             counted["n"] = 0
-            start = time.perf_counter()
-            run = driver.run(scene.load_factors, scene.dt, seed=3, max_rank=rank)
-            wall = time.perf_counter() - start
-            runs.append(run)
-            print(f"max_rank {rank}: {wall:.1f} s, {len(run.t)} steps ({1e3 * wall / len(run.t):.0f} ms each), "
-                  f"{counted['n']} factorisations, {run.broken[-1]} bonds broken", flush=True)
-    same = all(np.array_equal(r.intact < 0.5, runs[0].intact < 0.5) and len(r.t) == len(runs[0].t) for r in runs)
-    print(f"same steps and broken bonds in every run: {same}")
+            out = realise(variant, PARAMS, seed)
+            rows.append({"wall": float(out["wall_time_s"]), "steps": len(out["t"]), "factorisations": counted["n"],
+                         "broken": int(out["broken"][-1]), **{k: float(out[k]) for k in OUTCOMES}})
+            print(f"{spec} seed {seed}: {rows[-1]['wall']:.1f} s, {rows[-1]['steps']} steps, "
+                  f"{counted['n']} factorisations, {rows[-1]['broken']} bonds broken, failure "
+                  f"{rows[-1]['failure_load_factor']:.4f}, peak {rows[-1]['peak_load']:.1f} N, "
+                  f"crack {rows[-1]['final_crack_length']:.1f} mm", flush=True)
+        results[spec] = {k: np.array([r[k] for r in rows]) for k in rows[0]}
+    reference = args.runs[0]
+    ref = results[reference]
+    print(f"\nper realisation (mean over {len(args.seeds)} seeds), against {reference}:")
+    for spec, res in results.items():
+        line = f"{spec:>12}: {res['wall'].mean():6.1f} s, {res['steps'].mean():.0f} steps"
+        for k in OUTCOMES:
+            diff = res[k] - ref[k]
+            mc = ref[k].std(ddof=1) / np.sqrt(len(diff))
+            line += (f"; {k} {res[k].mean():.4g} (sd {res[k].std(ddof=1):.3g}), mean diff {diff.mean():+.3g}"
+                     f" +- {diff.std(ddof=1) / np.sqrt(len(diff)):.2g} (MC error of the mean {mc:.2g})")
+        print(line)
 
 
 if __name__ == "__main__":

@@ -130,3 +130,17 @@ def test_the_damage_ode_is_refused():
     *_, body = bar()
     with pytest.raises(TypeError, match="rate-dependent"):
         quasi_static(body, [0.1], DamageODE(k=1.0, alpha0=0.9))
+
+
+@pytest.mark.parametrize("flip", [False, True])
+def test_a_bond_listed_twice_is_refused(flip):
+    """The same pair twice (as i, j or as j, i) would count its stiffness twice."""
+    p = bp.grid_2d(6.0, 4.0, H)
+    b = bp.find_bonds(p, DELTA)
+    i, j = (b.j[:1], b.i[:1]) if flip else (b.i[:1], b.j[:1])
+    twice = bp.Bonds(np.r_[b.i, i], np.r_[b.j, j], np.r_[b.xi, np.asarray(p.x[j] - p.x[i])],
+                     np.r_[b.length, b.length[:1]], b.h, b.delta_max, b.rule)
+    body = LoadedBody(bp.BondBased(p, twice), {"K": 1000.0}, DELTA,
+                      [bp.Dirichlet.layer(p, "left", DELTA), bp.Dirichlet.layer(p, "right", DELTA, (U, 0.0))])
+    with pytest.raises(ValueError, match="listed twice"):
+        body.operator(torch.ones(body.n_bonds), body.constraints.free_dofs)

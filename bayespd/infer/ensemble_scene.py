@@ -12,7 +12,9 @@ eq 4 with the damage law of eq 2 or 5, ``bayespd.solvers.fracture``) and what to
 * ``failure_length``: failure is the load factor at which the crack first reaches this
   length (under Brownian forcing the reaction is too noisy for its peak to locate failure);
   ``load_component``: the reaction component reported as the load (None: its norm);
-* ``observed_path``: an observed crack polyline (k, 2) to overlay, or None.
+* ``observed_path``: an observed crack polyline (k, 2) to overlay, or None;
+* ``tangent`` and ``max_rank``: the operator of the steps, "exact" or "lagged", and the
+  largest Woodbury update of its factor (``StochasticFracture.run``).
 """
 from __future__ import annotations
 
@@ -45,6 +47,8 @@ class FractureScene:
     path_threshold: float = 0.4
     hold: bool = True
     max_steps: int | None = None
+    tangent: str = "exact"
+    max_rank: int = 512
     observed_path: np.ndarray | None = None
     attrs: dict = field(default_factory=dict)
 
@@ -60,6 +64,8 @@ class FractureScene:
         if d.shape != (2,) or not np.linalg.norm(d) > 0 or np.shape(self.origin) != (2,):
             raise ValueError("origin and direction must be 2D points/vectors (the crack band is "
                              "measured across a line in the plane), direction non-zero")
+        if self.tangent not in ("exact", "lagged"):
+            raise ValueError(f'tangent must be "exact" or "lagged", got {self.tangent!r}')
         if not 0 < self.threshold < 1:
             raise ValueError("threshold must lie in (0, 1) (a damage index phi)")
         x = np.asarray(self.x, dtype=np.float64)
@@ -87,7 +93,8 @@ def realise(scene: FractureScene, params: dict, seed: int, device=None) -> dict:
         with threadpool_limits(1), contextlib.nullcontext() if device in (None, "cpu") else torch.device(device):
             run = scene.build({k: float(params[k]) for k in scene.params}).run(
                 scene.load_factors, scene.dt, seed=int(seed), hold=scene.hold,
-                max_steps=scene.max_steps, path_threshold=scene.path_threshold)
+                max_steps=scene.max_steps, path_threshold=scene.path_threshold, tangent=scene.tangent,
+                max_rank=scene.max_rank)
     finally:
         torch.set_num_threads(threads)
         sparse.FACTOR_THREADS = factor_threads

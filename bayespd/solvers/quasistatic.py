@@ -90,10 +90,11 @@ class LoadedBody:
         """f_int + lambda p - eps u, shape (N, dim) (the prescribed dofs included)."""
         return self.internal(u, intact) + lam * self.load - self.eps * u
 
-    def reaction(self, u: torch.Tensor, intact) -> torch.Tensor:
+    def reaction(self, u: torch.Tensor, intact, f_int: torch.Tensor | None = None) -> torch.Tensor:
         """Total force on the loaded particles from outside the body: -(f_int - eps u) summed
-        (the support force under displacement control, lambda p under force control)."""
-        f = self.internal(u, intact) - self.eps * u
+        (the support force under displacement control, lambda p under force control);
+        ``f_int``: the internal force at u when already known."""
+        f = (self.internal(u, intact) if f_int is None else f_int) - self.eps * u
         return -f[torch.as_tensor(self.loaded)].sum(0)
 
     def mean_displacement(self, u: torch.Tensor) -> torch.Tensor:
@@ -214,7 +215,8 @@ class LoadedBody:
         block is the sum S over a particle's bonds."""
         d, p = self.particles.dim, np.arange(self.particles.n)
         diagonal = self._block_positions(p, p).reshape(-1)
-        if len(np.unique(self._blocks[:, 2])) != self._blocks[:, 2].size:
+        i, j = self.bonds.i, self.bonds.j
+        if np.any(np.diff(np.sort(np.minimum(i, j) * self.particles.n + np.maximum(i, j))) == 0):
             raise ValueError("a bond is listed twice: give each pair of particles one bond")
         sources = np.full(self.material.pattern.nnz, -1)
         bond_entries = np.arange(self.n_bonds * d * d)
