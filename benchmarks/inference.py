@@ -90,9 +90,10 @@ def gradient_rates(scene, y, sigma, repeat):
     return min(t[0] for t in times), min(t[1] for t in times), model
 
 
-def nuts_to_ess(model, y, scene, draws, warmup, chains):
+def nuts_to_ess(model, y, scene, draws, warmup, chains, adapt_mass=True, target_accept=0.8):
     tree = fit(model, {"y": y}, "nuts", num_samples=draws, num_warmup=warmup, num_chains=chains,
-               init="map", mass_matrix_from="laplace", seed=0, progress=False)
+               init="map", mass_matrix_from="laplace", adapt_mass=adapt_mass, target_accept=target_accept,
+               seed=0, progress=False)
     ess = az.ess(to_inference_data(tree), var_names=list(demo.NAMES), method="bulk")
     ess = {k: float(ess[k]) for k in demo.NAMES}
     wall = float(tree.attrs["wall_time_s"])
@@ -101,7 +102,8 @@ def nuts_to_ess(model, y, scene, draws, warmup, chains):
     return {"wall_time_s": wall, "grad_evals": grads, "ess_bulk": ess, "ess_min": low,
             "time_to_ess_400_s": wall * max(1.0, ESS_TARGET / low), "extrapolated": low < ESS_TARGET,
             "grads_per_effective_draw": grads / low,
-            "divergences": int(tree["sample_stats"]["diverging"].sum())}
+            "divergences": int(tree["sample_stats"]["diverging"].sum()),
+            "tree_depth_mean": float(tree["sample_stats"]["tree_depth"].mean())}
 
 
 def main():
@@ -112,6 +114,9 @@ def main():
     parser.add_argument("--warmup", type=int, default=200)
     parser.add_argument("--chains", type=int, default=2)
     parser.add_argument("--no-nuts", action="store_true")
+    parser.add_argument("--fixed-mass", action="store_true",
+                        help="keep the Laplace mass matrix through warmup (fit's adapt_mass=False)")
+    parser.add_argument("--target-accept", type=float, default=0.8)
     parser.add_argument("--rule", default="linear", choices=["linear", "smooth"],
                         help="partial-volume ramp in delta of the model (bayespd.bonds.partial_volume)")
     args = parser.parse_args()
@@ -126,13 +131,15 @@ def main():
               f"({1 / t_pyro:.0f}/s); Pyro overhead {100 * (1 - t_bare / t_pyro):.0f} % of each gradient", flush=True)
         if name == "demo" and not args.no_nuts:
             start = time.perf_counter()
-            nuts = nuts_to_ess(model, y, scene, args.draws, args.warmup, args.chains)
+            nuts = nuts_to_ess(model, y, scene, args.draws, args.warmup, args.chains, not args.fixed_mass,
+                               args.target_accept)
             how = "extrapolated" if nuts["extrapolated"] else "measured"
             print(f"demo NUTS {args.chains} x ({args.warmup} + {args.draws}): {nuts['wall_time_s']:.1f} s "
                   f"(fit call {time.perf_counter() - start:.1f} s), {nuts['grad_evals']} gradients, bulk ESS "
                   f"{ {k: round(v) for k, v in nuts['ess_bulk'].items()} }, divergences {nuts['divergences']}; "
                   f"time to ESS {ESS_TARGET} for every parameter: {nuts['time_to_ess_400_s']:.1f} s ({how}); "
-                  f"{nuts['grads_per_effective_draw']:.1f} gradients per effective draw", flush=True)
+                  f"{nuts['grads_per_effective_draw']:.1f} gradients per effective draw, mean tree depth "
+                  f"{nuts['tree_depth_mean']:.2f}", flush=True)
         elif nuts is not None:
             print(f"{name}: NUTS to ESS {ESS_TARGET} extrapolated from the demo's "
                   f"{nuts['grads_per_effective_draw']:.1f} gradients per effective draw: "

@@ -62,7 +62,7 @@ def _scene_layout(scene, data, observed, dims, coords, constant_data):
 
 def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, num_chains=4,
         seed=0, chains="auto", init_values=None, init="median", dense_mass=False,
-        mass_matrix_from=None, target_accept=0.8, max_tree_depth=10, trajectory_length=None,
+        mass_matrix_from=None, adapt_mass=True, target_accept=0.8, max_tree_depth=10, trajectory_length=None,
         guide="mvn", svi_steps=2000, svi_lr=0.02, svi_rank=None, svi_particles=1,
         hessian="exact", checkpoint=None, checkpoint_every=50, scene=None, constant_data=None,
         progress=True, observed="y", dims=None, coords=None):
@@ -78,7 +78,9 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
       (see ``bayespd.infer.mcmc`` for seeds, ``chains="auto" | "sequential" | "processes"``
       and ``checkpoint=<dir>``). ``dense_mass=True`` adapts a full mass matrix;
       ``mass_matrix_from`` seeds it with the covariance of a previous fit's draws (a DataTree,
-      e.g. a quick SVI fit) or of the Laplace approximation (``"laplace"``). NUTS uses
+      e.g. a quick SVI fit) or of the Laplace approximation (``"laplace"``), which
+      ``adapt_mass=False`` keeps through warmup (only the step size adapts: warmup windows
+      of 25-100 draws estimate a covariance worse than an exact-Hessian Laplace one). NUTS uses
       ``target_accept`` and ``max_tree_depth``; HMC integrates trajectories of length
       ``trajectory_length`` (default 2 pi), i.e. ``trajectory_length / step_size`` leapfrog steps. A model that raises ``NotPositiveDefiniteError`` or
       ``ParameterRangeError`` (a modulus over- or underflowed) in a trajectory gets a divergence (proposal rejected); a
@@ -121,9 +123,9 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
     if method in ("nuts", "hmc"):
         posterior, stats, grad_evals = _mcmc(
             model, data, method, num_samples, num_warmup, num_chains, seed, chains, start_init,
-            init, dense_mass, mass_matrix_from, target_accept, max_tree_depth, trajectory_length,
-            checkpoint, checkpoint_every, observed, progress)
-        settings.update(num_warmup=num_warmup, num_chains=num_chains, dense_mass=dense_mass,
+            init, dense_mass, mass_matrix_from, adapt_mass, target_accept, max_tree_depth,
+            trajectory_length, checkpoint, checkpoint_every, observed, progress)
+        settings.update(num_warmup=num_warmup, num_chains=num_chains, dense_mass=dense_mass, adapt_mass=adapt_mass,
                         mass_matrix_from=mass_matrix_from if isinstance(mass_matrix_from, str)
                         else None if mass_matrix_from is None else "tree")
         settings.update({"nuts": {"target_accept": target_accept, "max_tree_depth": max_tree_depth},
@@ -178,8 +180,11 @@ def _map_init(model, data, init, progress):
 
 
 def _mcmc(model, data, kernel, num_samples, num_warmup, num_chains, seed, chains, init_fn, init,
-          dense_mass, mass_matrix_from, target_accept, max_tree_depth, trajectory_length, checkpoint,
-          checkpoint_every, observed, progress):
+          dense_mass, mass_matrix_from, adapt_mass, target_accept, max_tree_depth, trajectory_length,
+          checkpoint, checkpoint_every, observed, progress):
+    if not adapt_mass and mass_matrix_from is None:
+        raise ValueError("adapt_mass=False keeps a seeded mass matrix: give mass_matrix_from "
+                         "('laplace' or a DataTree), or leave adaptation on")
     seed_covariance = None
     if isinstance(mass_matrix_from, str):
         if mass_matrix_from != "laplace":
@@ -197,6 +202,7 @@ def _mcmc(model, data, kernel, num_samples, num_warmup, num_chains, seed, chains
                if kernel == "nuts" else {"trajectory_length": trajectory_length,
                                          "target_accept_prob": target_accept})
     options["full_mass"] = bool(dense_mass or seed_covariance is not None)
+    options["adapt_mass_matrix"] = bool(adapt_mass)
     spec = ChainSpec(model, data, kernel, num_warmup, num_samples, seed, init_fn, options,
                      seed_covariance, progress, None if checkpoint is None else Path(checkpoint),
                      checkpoint_every)
