@@ -52,7 +52,7 @@ def main(n: int, free_delta: bool, quick: bool):
     start = time.perf_counter()
     records = cs.replications("nuts", n, free_delta)
     ok = cs.successful(records)
-    settings = cs.METHODS["nuts"]
+    settings = cs.settings("nuts", free_delta)
     num_draws = settings["rank_draws"]
     ranks = {k: [r["params"][k]["rank"] for r in ok] for k in cs.names(free_delta)}
     targets, per_param = {}, {}

@@ -30,6 +30,7 @@ from threadpoolctl import threadpool_limits
 
 from bayespd import sparse
 from bayespd.damage import crack_length
+from bayespd.infer.heap import keep_temporaries_on_heap
 
 
 @dataclass(frozen=True)
@@ -82,9 +83,12 @@ def realise(scene: FractureScene, params: dict, seed: int, device=None) -> dict:
     under ``torch.device(device)`` (default CPU), with one torch and one BLAS thread in every
     BLAS library loaded (numpy's, scipy's, CHOLMOD's: the result is the same bit for bit in
     any process or worker, and workers sharing the cores do not oversubscribe them, which
-    measured 2x slower with two workers on two cores). Returns float64 / int64
-    numpy arrays (see ``Realisation``) plus the derived peak load, failure load factor,
-    first-failure time and final crack length."""
+    measured 2x slower with two workers on two cores), and large temporaries kept on the
+    heap where the worker's environment fixed glibc's thresholds (Dask's: 2.3x slower
+    otherwise, ``bayespd.infer.heap``). Returns float64 / int64 numpy arrays (see
+    ``Realisation``) plus the derived peak load, failure load factor, first-failure time and
+    final crack length."""
+    keep_temporaries_on_heap()
     threads, factor_threads = torch.get_num_threads(), sparse.FACTOR_THREADS
     torch.set_num_threads(1)
     sparse.FACTOR_THREADS = 1  # CHOLMOD's BLAS: its sums depend on the thread count

@@ -6,9 +6,11 @@ free particle; the model is ``models.elastic_plate`` with its default priors (K,
 LogNormal(log nominal, 0.5), delta ScaledBeta(h, delta_max, 2, 2), sigma HalfNormal).
 By default delta is known (conditioned at DELTA_KNOWN) and (K, G, sigma) are inferred:
 with delta free the likelihood has a kink wherever delta crosses a bond length (partial
-volumes are piecewise linear in delta); in trial fits NUTS then took ~1.8x the gradients
-(1.8-5.6 k per fit) and mixed delta poorly (bulk ESS 15-30 of 150 draws), too costly for
-100 fits on the shared 2-core machine; ``free_delta=True`` runs that variant.
+volumes are piecewise linear in delta); in trial fits NUTS with the metric re-adapted in
+warmup then took ~1.8x the gradients (1.8-5.6 k per fit) and mixed delta poorly (bulk ESS
+15-30 of 150 draws). ``free_delta=True`` runs that variant with the Laplace metric kept
+through warmup and target_accept 0.95 (``FREE_DELTA_NUTS``; benchmarks/README.md,
+inference.py: 3x fewer gradients per effective draw, no divergences at the kinks).
 
 Replication ``i`` draws (K, G, delta, sigma) and then y from the model itself (seed
 ``1000 + i``): the prior predictive, so the data come from the same model that is calibrated
@@ -48,6 +50,12 @@ METHODS = {
     "laplace": {"num_samples": 400, "hessian": "exact"},
     "svi": {"guide": "mvn", "svi_steps": 300, "svi_lr": 0.02, "num_samples": 400, "init": "map"},
 }
+FREE_DELTA_NUTS = {"adapt_mass": False, "target_accept": 0.95}
+
+
+def settings(method: str, free_delta: bool = False) -> dict:
+    """The options of ``method``'s fits (METHODS, and FREE_DELTA_NUTS for NUTS with delta free)."""
+    return {**METHODS[method], **(FREE_DELTA_NUTS if free_delta and method == "nuts" else {})}
 
 
 def plate(nx=NX, ny=NY, h=H, delta_max=DELTA_MAX) -> bp.Scene:
@@ -86,16 +94,16 @@ def prior_draw(model, seed: int, free_delta: bool = False) -> tuple[dict, torch.
     return truth, trace.nodes["y"]["value"].detach().clone()
 
 
-def fit_method(model, y, method: str, seed: int, settings: dict):
-    """One fit with ``settings`` (``METHODS[method]``); NUTS falls back to an adapted dense
+def fit_method(model, y, method: str, seed: int, options: dict):
+    """One fit with ``options`` (see ``settings``); NUTS falls back to an adapted dense
     mass matrix when the Laplace Hessian at the MAP is not positive definite."""
-    options = {k: v for k, v in settings.items() if k != "rank_draws"}
+    options = {k: v for k, v in options.items() if k != "rank_draws"}
     try:
         return fit(model, {"y": y}, method, seed=seed, progress=False, **options)
     except NotPositiveDefiniteHessian:
         if method != "nuts":
             raise
-        options.update(mass_matrix_from=None, dense_mass=True)
+        options.update(mass_matrix_from=None, dense_mass=True, adapt_mass=True)
         return fit(model, {"y": y}, method, seed=seed, progress=False, **options)
 
 
@@ -115,7 +123,7 @@ def summarise(tree, truth: dict, rank_draws: int | None) -> dict:
 
 def fingerprint(method: str, free_delta: bool = False) -> str:
     key = json.dumps({"scene": [NX, NY, H, DELTA_MAX, NOISE_FRACTION], "nominal": NOMINAL,
-                      "settings": METHODS[method], "delta": "free" if free_delta else DELTA_KNOWN},
+                      "settings": settings(method, free_delta), "delta": "free" if free_delta else DELTA_KNOWN},
                      sort_keys=True)
     return f"{method}-{hashlib.sha1(key.encode()).hexdigest()[:10]}"
 
@@ -130,14 +138,14 @@ def replication(method: str, i: int, free_delta: bool = False, root=None) -> dic
         return json.loads(path.read_text())
     _, model, _ = scene_and_model(free_delta)
     truth, y = prior_draw(model, 1000 + i, free_delta)
-    settings = METHODS[method]
+    options = settings(method, free_delta)
     start = time.perf_counter()
     try:
-        tree = fit_method(model, y, method, i, settings)
+        tree = fit_method(model, y, method, i, options)
     except Exception as error:  # recorded, never dropped silently
         record = {"rep": i, "truth": truth, "failed": f"{type(error).__name__}: {error}"}
     else:
-        record = {"rep": i, "truth": truth, "params": summarise(tree, truth, settings.get("rank_draws")),
+        record = {"rep": i, "truth": truth, "params": summarise(tree, truth, options.get("rank_draws")),
                   "fit_wall_time_s": float(tree.attrs["wall_time_s"]),
                   "grad_evals": int(tree.attrs["num_grad_evals"])}
         if "diverging" in tree["sample_stats"]:
