@@ -70,8 +70,8 @@ def notched_plate(side: float = 40.0, h: float = 1.0, m: int = 3, s0_nominal: fl
     failure when the crack has run through half the ligament (side / 4). Paths are traced at
     phi > 0.3: the faces of a straight crack have phi = 0.44 at delta = 3h, of a kinked one
     0.3-0.4, and 0.4 would cut a kinked path apart (``experiments/crack_paths.py``).
-    ``tangent``: "lagged" by default, 2x faster than "exact" at 10k particles, its ensemble
-    means within their Monte-Carlo error of the exact tangent's (``benchmarks/fracture.py``)."""
+    ``tangent``: "lagged" by default, 2.1x faster than "exact" at 10k particles, its mean
+    outcomes within one standard error of the exact tangent's (``benchmarks/fracture.py``)."""
     if not (side > 0 and h > 0 and side / h >= 8 and int(m) == m and m >= 2):
         raise ValueError("need side >= 8 h, h > 0 and an integer horizon factor m >= 2")
     body = plate_body(side, h, m, 1.0)

@@ -62,10 +62,10 @@ def _scene_layout(scene, data, observed, dims, coords, constant_data):
 
 def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, num_chains=4,
         seed=0, chains="auto", init_values=None, init="median", dense_mass=False,
-        mass_matrix_from=None, adapt_mass=True, target_accept=0.8, max_tree_depth=10, trajectory_length=None,
-        guide="mvn", svi_steps=2000, svi_lr=0.02, svi_rank=None, svi_particles=1,
-        hessian="exact", checkpoint=None, checkpoint_every=50, scene=None, constant_data=None,
-        progress=True, observed="y", dims=None, coords=None):
+        mass_matrix_from=None, adapt_mass=True, target_accept=0.8, max_tree_depth=10,
+        trajectory_length=None, guide="mvn", svi_steps=2000, svi_lr=0.02, svi_rank=None,
+        svi_particles=1, hessian="exact", checkpoint=None, checkpoint_every=50, scene=None,
+        constant_data=None, progress=True, observed="y", dims=None, coords=None):
     """Posterior of ``model(**data)`` as an ArviZ-style ``xarray.DataTree``.
 
     ``data[observed]`` is scored by the sample site of the same name. Input is checked first
@@ -125,7 +125,8 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
             model, data, method, num_samples, num_warmup, num_chains, seed, chains, start_init,
             init, dense_mass, mass_matrix_from, adapt_mass, target_accept, max_tree_depth,
             trajectory_length, checkpoint, checkpoint_every, observed, progress)
-        settings.update(num_warmup=num_warmup, num_chains=num_chains, dense_mass=dense_mass, adapt_mass=adapt_mass,
+        settings.update(num_warmup=num_warmup, num_chains=num_chains, dense_mass=dense_mass,
+                        adapt_mass=adapt_mass,
                         mass_matrix_from=mass_matrix_from if isinstance(mass_matrix_from, str)
                         else None if mass_matrix_from is None else "tree")
         settings.update({"nuts": {"target_accept": target_accept, "max_tree_depth": max_tree_depth},
