@@ -121,7 +121,7 @@ def main(quick: bool, seed: int = 0):
     svi = fit(model, data, "svi", svi_steps=svi_steps, num_samples=1000, seed=seed,
               init_values=init, dims=dims, coords=coords)
     # MAP start and the Laplace covariance (exact Hessian) as the mass matrix, kept through
-    # warmup: 3x fewer gradients than adapting it (benchmarks/README.md, inference.py);
+    # warmup: 2.8x fewer gradients per effective draw than adapting it (benchmarks/README.md);
     # target_accept 0.95: the partial volumes' kinks in delta diverge longer steps
     nuts = fit(model, data, "nuts", num_samples=draws, num_warmup=warmup, num_chains=2, seed=seed,
                init_values=init, init="map", dims=dims, coords=coords, mass_matrix_from="laplace",

@@ -10,7 +10,7 @@ volumes are piecewise linear in delta); in trial fits NUTS with the metric re-ad
 warmup then took ~1.8x the gradients (1.8-5.6 k per fit) and mixed delta poorly (bulk ESS
 15-30 of 150 draws). ``free_delta=True`` runs that variant with the Laplace metric kept
 through warmup and target_accept 0.95 (``FREE_DELTA_NUTS``; benchmarks/README.md,
-inference.py: 3x fewer gradients per effective draw, no divergences at the kinks).
+inference.py: 2.8x fewer gradients per effective draw, no divergences at the kinks).
 
 Replication ``i`` draws (K, G, delta, sigma) and then y from the model itself (seed
 ``1000 + i``): the prior predictive, so the data come from the same model that is calibrated
