@@ -1,7 +1,7 @@
 """Headline calibration: K, G, delta and sigma of a 2D LPS plate with a hole, from synthetic
 DIC data made on a grid twice as fine (no inverse crime) plus 1 % noise, by Tikhonov, SVI
-(full-rank Gaussian) and NUTS (MAP start, Laplace mass matrix). Writes runs/demo/ (posterior.nc, svi.nc, metrics.json,
-summary.md, figures) and prints one table.
+(full-rank Gaussian) and NUTS (MAP start, Laplace mass matrix). Writes runs/demo/
+(posterior.nc, svi.nc, metrics.json, summary.md, figures) and prints one table.
 
     python experiments/demo.py [--quick]
 """

@@ -123,8 +123,8 @@ def summarise(tree, truth: dict, rank_draws: int | None) -> dict:
 
 def fingerprint(method: str, free_delta: bool = False) -> str:
     key = json.dumps({"scene": [NX, NY, H, DELTA_MAX, NOISE_FRACTION], "nominal": NOMINAL,
-                      "settings": settings(method, free_delta), "delta": "free" if free_delta else DELTA_KNOWN},
-                     sort_keys=True)
+                      "settings": settings(method, free_delta),
+                      "delta": "free" if free_delta else DELTA_KNOWN}, sort_keys=True)
     return f"{method}-{hashlib.sha1(key.encode()).hexdigest()[:10]}"
 
 
