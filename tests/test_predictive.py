@@ -199,3 +199,5 @@ def test_bad_input_names_the_fix(noisy_scene, tmp_path):
         FractureScene(print, ("K",), [1.0], 1.0, np.zeros((3, 2)), direction=(0.0, 0.0))
     with pytest.raises(ValueError, match="dt must be positive"):
         FractureScene(print, ("K",), [1.0], 0.0, np.zeros((3, 2)))
+    with pytest.raises(ValueError, match='"exact" or "lagged"'):
+        FractureScene(print, ("K",), [1.0], 1.0, np.zeros((3, 2)), tangent="secant")

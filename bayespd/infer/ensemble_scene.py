@@ -31,6 +31,7 @@ from threadpoolctl import threadpool_limits
 from bayespd import sparse
 from bayespd.damage import crack_length
 from bayespd.infer.heap import keep_temporaries_on_heap
+from bayespd.solvers.fracture import check_tangent
 
 
 @dataclass(frozen=True)
@@ -65,8 +66,7 @@ class FractureScene:
         if d.shape != (2,) or not np.linalg.norm(d) > 0 or np.shape(self.origin) != (2,):
             raise ValueError("origin and direction must be 2D points/vectors (the crack band is "
                              "measured across a line in the plane), direction non-zero")
-        if self.tangent not in ("exact", "lagged"):
-            raise ValueError(f'tangent must be "exact" or "lagged", got {self.tangent!r}')
+        check_tangent(self.tangent)
         if not 0 < self.threshold < 1:
             raise ValueError("threshold must lie in (0, 1) (a damage index phi)")
         x = np.asarray(self.x, dtype=np.float64)

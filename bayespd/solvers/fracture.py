@@ -49,6 +49,12 @@ from bayespd.solvers.woodbury import LocallyUpdated, Refined
 
 
 REFRESH_ITERATIONS = 8  # conjugate-gradient iterations per step beyond which the factor is renewed
+TANGENTS = ("exact", "lagged")  # the operators of the steps (module docstring)
+
+
+def check_tangent(tangent: str) -> None:
+    if tangent not in TANGENTS:
+        raise ValueError(f'tangent must be "exact" or "lagged", got {tangent!r}')
 
 
 @dataclass
@@ -107,8 +113,7 @@ class StochasticFracture:
         every change). ``tangent``: "exact" or "lagged" (bond-based; module docstring).
         ``seed``: an int or a ``torch.Generator``; the same seed reproduces the run bit for
         bit. Raises NumericalInstabilityError on a blow-up."""
-        if tangent not in ("exact", "lagged"):
-            raise ValueError(f'tangent must be "exact" or "lagged", got {tangent!r}')
+        check_tangent(tangent)
         body, law = self.body, self.damage
         exact = tangent == "exact" and body.geometric
         lams = np.asarray(load_factors, dtype=float)
