@@ -124,18 +124,31 @@ class DamageODE:
 def damage_index(particles, bonds, intact, weight=None) -> torch.Tensor:
     """phi_i = 1 - sum_j w mu V_j / sum_j w V_j over particle i's bonds (w = 1 when ``weight``
     is None, else e.g. ``material.bond_weight(params, delta)``); differentiable in mu."""
-    i, j = torch.as_tensor(bonds.i), torch.as_tensor(bonds.j)
-    V = torch.as_tensor(particles.volume)
-    mu = torch.as_tensor(intact)
-    w = torch.ones_like(mu) if weight is None else torch.as_tensor(weight)
+    return DamageIndex(particles, bonds, weight)(intact)
 
-    def family(x):
-        return torch.zeros(particles.n, dtype=x.dtype).index_add(0, i, x * V[j]).index_add(0, j, x * V[i])
 
-    total = family(w)
-    if bool(torch.any(total == 0)):
-        raise ValueError("a particle has no weighted bonds: its damage index is undefined")
-    return 1 - family(w * mu) / total
+class DamageIndex:
+    """``damage_index`` for one body, its denominator sum_j w V_j taken once: phi_i is
+    evaluated as sum_j w (1 - mu) V_j / sum_j w V_j, over the damaged bonds only (mu < 1)
+    unless mu requires a gradient, so a call costs O(damaged bonds)."""
+
+    def __init__(self, particles, bonds, weight=None):
+        self.n = particles.n
+        self.i, self.j = torch.as_tensor(bonds.i), torch.as_tensor(bonds.j)
+        self.V = torch.as_tensor(particles.volume)
+        self.w = torch.ones(len(self.i), dtype=self.V.dtype) if weight is None else torch.as_tensor(weight)
+        self.total = self._family(self.w, slice(None))
+        if bool(torch.any(self.total == 0)):
+            raise ValueError("a particle has no weighted bonds: its damage index is undefined")
+
+    def _family(self, x, bonds):
+        i, j, V = self.i[bonds], self.j[bonds], self.V
+        return torch.zeros(self.n, dtype=x.dtype).index_add(0, i, x * V[j]).index_add(0, j, x * V[i])
+
+    def __call__(self, intact) -> torch.Tensor:
+        mu = torch.as_tensor(intact)
+        bonds = slice(None) if mu.requires_grad else torch.nonzero(mu < 1).reshape(-1)
+        return self._family(self.w[bonds] * (1 - mu[bonds]), bonds) / self.total
 
 
 def broken(intact, level: float = 0.5) -> torch.Tensor:

@@ -73,9 +73,10 @@ class NonlinearBonds:
             self._geometry[dtype] = ([xi[:, a].contiguous() for a in range(self.dim)], self.length.to(dtype))
         return self._geometry[dtype]
 
-    def _components(self, u: torch.Tensor):
+    def components(self, u: torch.Tensor):
         """([y_a], |y|, e) with y_a the components of the deformed bonds y = xi + u_j - u_i and
-        e = |y| - |xi| (cancellation-free, see the module docstring)."""
+        e = |y| - |xi| (cancellation-free, see the module docstring); pass them to ``stretch``
+        and ``force`` to evaluate both at one u from one gather."""
         if u.shape != (self.n, self.dim):
             raise ValueError(f"u must have shape ({self.n}, {self.dim}), got {tuple(u.shape)}")
         xi, length = self.geometry(u.dtype)
@@ -91,16 +92,17 @@ class NonlinearBonds:
     def kinematics(self, u: torch.Tensor):
         """(y, |y|, e): deformed bond vectors y = xi + u_j - u_i (n_bonds, dim), their lengths
         and the extensions e = |y| - |xi|."""
-        y, r, e = self._components(u)
+        y, r, e = self.components(u)
         return torch.stack(y, 1), r, e
 
     def deformed(self, u: torch.Tensor):
         """(y, |y|): deformed bond vectors xi + u_j - u_i and their lengths."""
         return self.kinematics(u)[:2]
 
-    def stretch(self, u: torch.Tensor) -> torch.Tensor:
-        """s = (|xi + eta| - |xi|) / |xi| per bond for u of shape (N, dim)."""
-        return self._components(u)[2] / self.geometry(u.dtype)[1]
+    def stretch(self, u: torch.Tensor, components=None) -> torch.Tensor:
+        """s = (|xi + eta| - |xi|) / |xi| per bond for u of shape (N, dim) (``components``:
+        those of u, when known)."""
+        return (components or self.components(u))[2] / self.geometry(u.dtype)[1]
 
     def at(self, params: dict, delta, dtype=torch.float64):
         """The material's per-bond coefficients at (params, delta) (differentiable), in
@@ -127,13 +129,14 @@ class _Force:
         self.moduli = kin.material._moduli(params)
         self.factor = kin.material._bond_correction(self.moduli, params, delta)
 
-    def _kinematics(self, u, intact):
-        """kin._components(u) and the intact fractions in this dtype; refuses a u of another
-        dtype (the coefficients were converted once, in ``NonlinearBonds.at``)."""
+    def _kinematics(self, u, intact, components=None):
+        """kin.components(u) (unless given) and the intact fractions in this dtype; refuses a
+        u of another dtype (the coefficients were converted once, in ``NonlinearBonds.at``)."""
         if u.dtype != self.dtype:
             raise ValueError(f"u is {u.dtype} but these coefficients are {self.dtype}: "
                              f"use NonlinearBonds.at(params, delta, dtype={u.dtype})")
-        return self.kin._components(u), None if intact is None else torch.as_tensor(intact).to(self.dtype)
+        intact = None if intact is None else torch.as_tensor(intact).to(self.dtype)
+        return components or self.kin.components(u), intact
 
     def _scatter(self, y, t_over_r, like):
         """Bond force t y/|y| pulls i towards j (+) and j towards i (-): one index_add_."""
@@ -157,8 +160,8 @@ class PMBForce(_Force):
         super().__init__(kin, params, delta, dtype)
         self.k = (self.factor * kin.material._bond_stiffness(self.moduli, params, delta)).to(dtype)
 
-    def force(self, u, intact=None):
-        (y, r, e), intact = self._kinematics(u, intact)
+    def force(self, u, intact=None, components=None):
+        (y, r, e), intact = self._kinematics(u, intact, components)
         k = self.k if intact is None else self.k * intact
         return self._scatter(y, k * e / r, u)
 
@@ -190,10 +193,10 @@ class LPSForce(_Force):
         z = torch.zeros(self.kin.n, dtype=at_i.dtype)
         return z.index_add_(0, self.kin.i, at_i).index_add_(0, self.kin.j, at_j)
 
-    def _state(self, u, intact):
+    def _state(self, u, intact, components=None):
         """(y, |y|, mu e, e, m, theta, mu); mu e stands for e when there is no damage."""
         kin = self.kin
-        (y, r, e), intact = self._kinematics(u, intact)
+        (y, r, e), intact = self._kinematics(u, intact, components)
         if intact is None:
             me, m = e, self.m0
         else:
@@ -203,9 +206,9 @@ class LPSForce(_Force):
         theta = kin.dim / m * self._sum(self.wLVj * me, self.wLVi * me)
         return y, r, me, e, m, theta, intact
 
-    def force(self, u, intact=None):
+    def force(self, u, intact=None, components=None):
         kin = self.kin
-        y, r, me, e, m, theta, intact = self._state(u, intact)
+        y, r, me, e, m, theta, intact = self._state(u, intact, components)
         ab = torch.stack([2 * kin.dim * self.A * theta / m, self.cG / m], dim=1)
         ab = ab.index_select(0, kin.i) + ab.index_select(0, kin.j)
         bond = self.wVVL * ab[:, 0] if intact is None else self.wVVL * intact * ab[:, 0]

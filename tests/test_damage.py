@@ -240,3 +240,24 @@ def test_crack_path_from_precrack_damage(plate):
     np.testing.assert_allclose(path[:, 1], 10.0, atol=1e-12)
     assert abs(max(path[0, 0], path[-1, 0]) - 25.0) <= p.h
     assert abs(min(path[0, 0], path[-1, 0]) - 0.0) <= 1e-12
+
+
+def test_damage_index_gradient_and_damaged_bonds_only():
+    """The index over the damaged bonds only (no gradient wanted) equals the one over every
+    bond (mu requires a gradient) to rounding, and d phi_i / d mu_b = -V_j / sum_j V_j for
+    each bond b = (i, j) of particle i (here the gradient of sum_i c_i phi_i)."""
+    p = bp.grid_2d(8.0, 6.0, 1.0)
+    bonds = bp.find_bonds(p, 2.0)
+    mu = torch.ones(bonds.n)
+    mu[::7] = torch.linspace(0.0, 0.9, len(mu[::7]))
+    plain = damage_index(p, bonds, mu)
+    wanted = mu.clone().requires_grad_(True)
+    phi = damage_index(p, bonds, wanted)
+    np.testing.assert_allclose(phi.detach().numpy(), plain.numpy(), rtol=0, atol=1e-15)
+    c = torch.linspace(1.0, 2.0, p.n, dtype=torch.float64)
+    (grad,) = torch.autograd.grad((c * phi).sum(), wanted)
+    V = torch.as_tensor(p.volume)
+    i, j = torch.as_tensor(bonds.i), torch.as_tensor(bonds.j)
+    total = torch.zeros(p.n, dtype=V.dtype).index_add(0, i, V[j]).index_add(0, j, V[i])
+    expected = -(c[i] * V[j] / total[i] + c[j] * V[i] / total[j])
+    np.testing.assert_allclose(grad.numpy(), expected.numpy(), rtol=1e-13)

@@ -117,3 +117,15 @@ def test_three_d_gradient_and_linear_limit(cls):
                   + mat.pattern.matvec(K, s * u.detach().reshape(-1)).reshape(-1, 3)).norm())
            for s in (1e-2, 5e-3)]
     assert np.log2(rem[0] / rem[1]) == pytest.approx(2.0, abs=0.05)
+
+
+@pytest.mark.parametrize("cls", [bp.BondBased, bp.LPS])
+def test_shared_components_give_the_same_force_and_stretch(plate, cls):
+    """One gather for both: force and stretch from ``components(u)`` are bit for bit those
+    computed from u."""
+    mat, params, nl = setup(plate, cls)
+    u, mu = random_u(mat.particles.n, 0.01), damage_state(mat.bonds, mat.particles)
+    parts = nl.components(u)
+    f = nl.at(params, DELTA)
+    assert torch.equal(f.force(u, mu, parts), f.force(u, mu))
+    assert torch.equal(nl.stretch(u, parts), nl.stretch(u))

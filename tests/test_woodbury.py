@@ -18,6 +18,7 @@ from bayespd.damage import CriticalStretch
 from bayespd.solvers import white_noise
 from bayespd.solvers.linear import shifted_factor, spd_factor
 from bayespd.solvers.quasistatic import LoadedBody
+from bayespd.solvers import woodbury
 from bayespd.solvers.woodbury import LocallyUpdated, Refined
 from bayespd.sparse import NotPositiveDefiniteError
 
@@ -134,3 +135,43 @@ def test_fracture_with_updates_follows_fracture_with_refactorisation(plate):
     b = frac.run(lams, 1.0, seed=5, max_rank=0)
     assert a.broken[-1] > 0 and np.array_equal(a.broken, b.broken)
     assert torch.allclose(a.u, b.u, rtol=0, atol=1e-6 * float(a.u.abs().max()))
+
+
+def test_grouped_columns_are_solved_a_tile_at_a_time(plate, monkeypatch):
+    """Columns solved a tile at a time (``groups``): the updated solve equals the direct one
+    to 1e-10, the columns equal those solved row by row to 1e-12, and a second change whose
+    new rows lie in tiles already touched needs no solve; a groups array of the wrong
+    length is refused."""
+    intact0 = torch.ones(plate.n_bonds)
+    active = plate.active(intact0)
+    tiles = plate.tiles(active, 4 * H)
+    assert len(np.unique(tiles)) == 6 and np.all(tiles[0::2] == tiles[1::2])  # the free 12 x 6 band: 3 x 2 tiles; a particle's dofs together
+    s, b = np.full(len(active), 2.0), 1e-3
+    centre = np.flatnonzero(np.abs(plate.particles.x[plate.bonds.i, 1] - SIDE / 2) < 1)
+    first, second = centre[:3], centre[:6]
+    rhs = np.random.default_rng(3).standard_normal(len(active))
+    T0 = plate.operator(intact0, active)
+    batches = []
+    solve_rows = woodbury._Base._solve
+    monkeypatch.setattr(woodbury._Base, "_solve", lambda self, rows: batches.append(len(rows)) or solve_rows(self, rows))
+
+    def run(groups):
+        A0 = LocallyUpdated(T0, max_rank=200, groups=groups)
+        batches.clear()
+        counts = []
+        for bonds in (first, second):
+            solve = shifted_factor(A0.changed(plate.operator_change(intact0, broken(plate, bonds), active)), s, b).solve
+            counts.append(int(np.count_nonzero(batches)))
+        W, order = next(iter(A0._bases.values())).columns(np.zeros(0, dtype=np.int64))
+        return solve, dict(zip(order.tolist(), W.T)), counts
+
+    solve, grouped, counts = run(tiles)
+    _, alone, counts_alone = run(None)
+    exact = spd_factor(sp.diags(s) + b * plate.operator(broken(plate, second), active)).solve(rhs)
+    assert np.abs(solve(rhs) - exact).max() <= 1e-10 * np.abs(exact).max()
+    assert grouped.keys() == alone.keys()
+    scale = max(np.abs(c).max() for c in alone.values())
+    assert max(np.abs(grouped[r] - alone[r]).max() for r in grouped) <= 1e-12 * scale
+    assert counts == [1, 1] and counts_alone == [1, 2]  # grouped: the second change's new rows were ready
+    with pytest.raises(ValueError, match="one label per row"):
+        LocallyUpdated(T0, groups=tiles[:-1])

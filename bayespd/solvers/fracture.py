@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from bayespd.damage import crack_length, crack_path, damage_index
+from bayespd.damage import DamageIndex, crack_length, crack_path
 from bayespd.solvers.dynamics import NumericalInstabilityError
 from bayespd.solvers.langevin import Langevin
 from bayespd.solvers.noise import Covariance
@@ -48,6 +48,7 @@ from bayespd.solvers.quasistatic import LoadedBody
 from bayespd.solvers.woodbury import LocallyUpdated, Refined
 
 
+COLUMN_TILE = 4  # side (in spacings h) of the tiles of dofs whose Woodbury columns are solved together
 REFRESH_ITERATIONS = 8  # conjugate-gradient iterations per step beyond which the factor is renewed
 TANGENTS = ("exact", "lagged")  # the operators of the steps (module docstring)
 
@@ -119,6 +120,7 @@ class StochasticFracture:
         lams = np.asarray(load_factors, dtype=float)
         max_steps = max_steps or 10 * len(lams)
         gen = seed if isinstance(seed, torch.Generator) else torch.Generator().manual_seed(int(seed))
+        damage_index = DamageIndex(body.particles, body.bonds)
         state = law.init(body.n_bonds)
         intact = operated = law.intact(state)
         u = torch.zeros(body.particles.n, body.particles.dim)
@@ -136,7 +138,8 @@ class StochasticFracture:
                 raise NumericalInstabilityError(
                     f"the stochastic fracture run blew up at step {n} (load factor {lams[k]:g}): "
                     "reduce dt, or the noise (eta), or give the body eps > 0")
-            state = law.update(state, body.kinematics.stretch(u), dt)
+            bonds_now = body.kinematics.components(u)  # one gather for the stretch and f_int
+            state = law.update(state, body.kinematics.stretch(u, bonds_now), dt)
             intact, before = law.intact(state), intact
             broke = not torch.equal(intact < 0.5, before < 0.5)
             stale = getattr(A, "iterations", 0) > REFRESH_ITERATIONS
@@ -145,16 +148,16 @@ class StochasticFracture:
                 base = self._factorised(intact, u, max_rank) if stale else self._updated(base, intact, u, max_rank)
                 step, A = self._stepper(intact, u, base, exact)
             if broke:
-                phi = damage_index(body.particles, body.bonds, intact)
+                phi = damage_index(intact)
                 length = crack_length(crack_path(body.particles, phi, path_threshold))
             rec["t"].append(n * dt)
             rec["lam"].append(lams[k])
-            f = body.internal(u, intact)
+            f = body.internal(u, intact, bonds_now)
             rec["reac"].append(body.reaction(u, intact, f).numpy())
             rec["broken"].append(int((intact < 0.5).sum()))
             rec["length"].append(length)
             k += not (hold and broke)
-        phi = damage_index(body.particles, body.bonds, intact)
+        phi = damage_index(intact)
         return Realisation(np.asarray(rec["t"]), np.asarray(rec["lam"]), np.asarray(rec["reac"]),
                            np.asarray(rec["broken"]), np.asarray(rec["length"]), phi.numpy(),
                            crack_path(body.particles, phi, path_threshold), u, intact,
@@ -164,7 +167,8 @@ class StochasticFracture:
         """A fresh operator at (intact, u) on the dofs still solved for."""
         body = self.body
         active = body.active(intact)
-        A = LocallyUpdated(body.operator(intact, active, u), max_rank) if len(active) else None
+        tiles = body.tiles(active, COLUMN_TILE * body.particles.h)
+        A = LocallyUpdated(body.operator(intact, active, u), max_rank, groups=tiles) if len(active) else None
         return _Operated(A, A, intact, u, active)
 
     def _updated(self, base: "_Operated", intact, u, max_rank: int) -> "_Operated":

@@ -39,7 +39,8 @@ from bayespd.boundary import Constraints
 from bayespd.damage import DamageODE, damage_index
 from bayespd.materials import BondBased
 from bayespd.nonlinear import NonlinearBonds
-from bayespd.solvers.linear import damaged_terms, floating_particles
+from bayespd.solvers.connectivity import FloatingPieces
+from bayespd.solvers.linear import damaged_terms
 from bayespd.sparse import ConvergenceError, NotPositiveDefiniteError
 
 MECHANISM_SHIFT = 1e-8  # relative diagonal shift of a singular tangent (see LoadedBody.tangent)
@@ -72,6 +73,7 @@ class LoadedBody:
             raise ValueError("nothing is loaded: give a Dirichlet region a non-zero value, a Load, "
                              "or pass loaded= (the particles whose reaction is recorded)")
         self._fixed = self.constraints.fixed_particles
+        self._floating = FloatingPieces(self.bonds, self._fixed)
         self._patterns = {}
 
     @property
@@ -83,8 +85,9 @@ class LoadedBody:
         c = self.constraints
         return c.embed(c.free(u)) + lam * c.prescribed
 
-    def internal(self, u: torch.Tensor, intact) -> torch.Tensor:
-        return self.forces.force(u, intact)
+    def internal(self, u: torch.Tensor, intact, components=None) -> torch.Tensor:
+        """f_int at u (``components``: ``kinematics.components(u)``, when known)."""
+        return self.forces.force(u, intact, components)
 
     def residual(self, u: torch.Tensor, lam: float, intact) -> torch.Tensor:
         """f_int + lambda p - eps u, shape (N, dim) (the prescribed dofs included)."""
@@ -107,8 +110,15 @@ class LoadedBody:
         if self.eps > 0:
             return free
         floating = np.zeros(self.particles.n, dtype=bool)
-        floating[floating_particles(self.bonds, intact, self._fixed)] = True
+        floating[self._floating(intact)] = True
         return free[~floating[free // self.particles.dim]]
+
+    def tiles(self, dofs: np.ndarray, width: float) -> np.ndarray:
+        """A label per flat dof index in ``dofs``: the square (cube) of side ``width`` on
+        the particle grid that holds its particle."""
+        x = np.asarray(self.particles.x)[dofs // self.particles.dim]
+        cell = np.floor((x - x.min(0)) / width).astype(np.int64)
+        return np.unique(cell, axis=0, return_inverse=True)[1].reshape(-1)
 
     @property
     def geometric(self) -> bool:

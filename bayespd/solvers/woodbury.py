@@ -13,6 +13,11 @@ indefinite change with an even number of negative eigenvalues passes it; ``Refin
 conjugate gradients, which precondition with this, check every direction's curvature). A
 column of W is solved once per row that joins R and kept while R grows (bonds only break),
 so a run of many small changes costs one factorisation plus one solve per changed dof.
+With ``groups`` (a label per row, e.g. a spatial tile of the dofs) the columns of a row's
+whole group are solved in one batched solve when the first of them is needed: a crack
+touches the rows next to those it touched last, and a 32-column solve costs about 6
+single ones (CHOLMOD, 18.8k dofs; the 10k-particle fracture run's columns take 1.1 s
+instead of 2.3 s).
 """
 from __future__ import annotations
 
@@ -28,11 +33,16 @@ class LocallyUpdated:
     """The symmetric operator A = A0 + delta (scipy sparse n x n; delta None or supported on
     few rows), with ``A @ v`` and ``shifted_factor(s, b)``, a factor of diag(s) + b A made
     from the one of diag(s) + b A0 (shared by every operator ``changed`` from the same A0).
-    ``max_rank``: the most rows a change may touch before ``changed`` asks for a new A0."""
+    ``max_rank``: the most rows a change may touch before ``changed`` asks for a new A0;
+    ``groups``: (n,) labels of the rows whose columns are solved together (default: each row
+    alone; module docstring)."""
 
-    def __init__(self, A0, max_rank: int = 512, delta=None, _bases=None):
+    def __init__(self, A0, max_rank: int = 512, delta=None, _bases=None, groups=None):
         self.A0, self.delta, self.max_rank = sp.csr_matrix(A0), delta, int(max_rank)
         self.shape = self.A0.shape
+        if groups is not None and np.shape(groups) != (self.shape[0],):
+            raise ValueError(f"groups must hold one label per row ({self.shape[0]})")
+        self.groups = None if groups is None else np.asarray(groups)
         self._bases = {} if _bases is None else _bases
 
     def changed(self, delta) -> "LocallyUpdated | None":
@@ -44,7 +54,7 @@ class LocallyUpdated:
             raise ValueError(f"the change must be {self.shape[0]} x {self.shape[1]} like A0")
         if np.count_nonzero(np.diff(delta.indptr)) > self.max_rank:
             return None
-        return LocallyUpdated(self.A0, self.max_rank, delta if delta.nnz else None, self._bases)
+        return LocallyUpdated(self.A0, self.max_rank, delta if delta.nnz else None, self._bases, self.groups)
 
     def __matmul__(self, v):
         out = self.A0 @ v
@@ -57,7 +67,8 @@ class LocallyUpdated:
         if key not in self._bases:
             # solved many times: METIS's smaller fill makes each solve ~25 % faster than AMD's
             factor = spd_factor(sp.diags(s) + b * self.A0, ordering="metis")
-            self._bases = {key: _Base(factor, self.shape[0], self.max_rank)}  # the latest only
+            self._bases.clear()  # the latest only, in the dict every operator changed from A0 shares
+            self._bases[key] = _Base(factor, self.shape[0], self.max_rank, self.groups)
         base = self._bases[key]
         if self.delta is None:
             return base.factor
@@ -80,29 +91,41 @@ class LocallyUpdated:
 class _Base:
     """The factor P of diag(s) + b A0 and the columns P^-1 e_r solved so far, in the order
     their rows were first touched (rows of a buffer allocated as they come, up to
-    ``capacity``, then doubling)."""
+    ``capacity``, then doubling); with ``groups``, the columns of a touched row's group that
+    are not needed yet wait in ``_ready``."""
 
-    def __init__(self, factor: Factor, n: int, capacity: int):
+    def __init__(self, factor: Factor, n: int, capacity: int, groups=None):
         self.factor, self.n, self.k, self.capacity = factor, n, 0, max(int(capacity), 16)
+        self.groups = groups
         self.order = np.zeros(0, dtype=np.int64)
         self._Wt = np.empty((0, n))
+        self._ready = {}
 
     def columns(self, rows: np.ndarray):
         """(W, order): P^-1 E (n, k) for every row solved so far, after solving the new ``rows``."""
         new = np.setdiff1d(rows, self.order)
         if len(new):
-            E = np.zeros((self.n, len(new)))
-            E[new, np.arange(len(new))] = 1.0
-            cols = np.asarray(self.factor.solve(E)).reshape(self.n, -1).T
+            self._solve(np.array([r for r in new.tolist() if r not in self._ready], dtype=np.int64))
             if self.k + len(new) > len(self._Wt):
-                rows = self.capacity if self.k + len(new) <= self.capacity else 2 * (self.k + len(new))
-                grown = np.empty((rows, self.n))
+                size = self.capacity if self.k + len(new) <= self.capacity else 2 * (self.k + len(new))
+                grown = np.empty((size, self.n))
                 grown[: self.k] = self._Wt[: self.k]
                 self._Wt = grown
-            self._Wt[self.k: self.k + len(new)] = cols
+            self._Wt[self.k: self.k + len(new)] = [self._ready.pop(r) for r in new.tolist()]
             self.k += len(new)
             self.order = np.concatenate([self.order, new])
         return self._Wt[: self.k].T, self.order
+
+    def _solve(self, rows: np.ndarray):
+        """Solve the columns of ``rows`` (and of the rest of their groups) into ``_ready``."""
+        if len(rows) == 0:
+            return
+        if self.groups is not None:
+            rows = np.flatnonzero(np.isin(self.groups, self.groups[rows]))
+        E = np.zeros((self.n, len(rows)))
+        E[rows, np.arange(len(rows))] = 1.0
+        cols = np.asarray(self.factor.solve(E)).reshape(self.n, -1).T
+        self._ready.update(zip(rows.tolist(), cols))
 
 
 class Refined:

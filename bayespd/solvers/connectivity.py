@@ -1,0 +1,56 @@
+"""The pieces of a body that hold no fixed particle, followed as bonds break.
+
+``floating_particles`` labels the components of the intact-bond graph afresh (a pass over
+every bond). Between two calls of a fracture run a few bonds break, and breaking a bond
+(i, j) cannot split a component when i and j still share an intact neighbour k (the path
+i-k-j stands in for it); when that holds for every bond lost since the last call, the
+graph's components, and so the floating particles, are unchanged. ``FloatingPieces``
+checks that first and relabels only when it fails (a bond whose ends lost every common
+neighbour: the crack faces far behind its tip, or a piece coming loose).
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from bayespd.solvers.linear import CONNECTED, floating_particles
+
+MAX_CHECKED = 64  # more bonds lost at once than this: relabel instead of checking each
+
+
+class FloatingPieces:
+    """``floating(intact)``: indices of the particles in pieces of the graph of bonds with
+    intact fraction above CONNECTED that hold no ``fixed`` particle (as
+    ``floating_particles``), reusing the previous answer when the change cannot split a piece."""
+
+    def __init__(self, bonds, fixed: np.ndarray):
+        self.bonds, self.fixed = bonds, fixed
+        n = len(fixed)
+        ends = np.concatenate([bonds.i, bonds.j])
+        order = np.argsort(ends, kind="stable")
+        self._indptr = np.concatenate([[0], np.cumsum(np.bincount(ends, minlength=n))])
+        self._bond = order % bonds.n  # the bonds of particle p: _bond[_indptr[p]:_indptr[p + 1]]
+        self._other = np.concatenate([bonds.j, bonds.i])[order]  # their other ends
+        self._keep, self._floating = None, None
+
+    def __call__(self, intact) -> np.ndarray:
+        keep = np.asarray(torch.as_tensor(intact) > CONNECTED)
+        if self._keep is None or not self._unsplit(keep):
+            self._floating = floating_particles(self.bonds, intact, self.fixed)
+        self._keep = keep
+        return self._floating
+
+    def _unsplit(self, keep: np.ndarray) -> bool:
+        """True when ``keep`` only drops bonds of the last graph, each of whose ends still
+        share an intact neighbour."""
+        if np.any(keep & ~self._keep):
+            return False  # a bond was restored: pieces may have joined
+        lost = np.flatnonzero(self._keep & ~keep)
+        if len(lost) > MAX_CHECKED:
+            return False
+        return all(np.intersect1d(self._neighbours(i, keep), self._neighbours(j, keep), assume_unique=True).size
+                   for i, j in zip(self.bonds.i[lost], self.bonds.j[lost]))
+
+    def _neighbours(self, p: int, keep: np.ndarray) -> np.ndarray:
+        span = slice(self._indptr[p], self._indptr[p + 1])
+        return self._other[span][keep[self._bond[span]]]
