@@ -13,6 +13,13 @@ No inverse crime:
   simulates with ``bayespd.solvers.karhunen_loeve`` (sparse kernel cut off at 4 lengths)
   while the likelihood uses the dense kernel.
 
+So the posterior concentrates at the pseudo-true parameters theta* = argmin KL(data law ||
+model law) (``bayespd.infer.pseudo_true``, closed form for these Gaussian laws), not at the
+truth the data were made with. Each fit is reported against both: theta* - truth is the
+model-form bias, posterior - theta* the inference error; the targets on eta and sigma_c are
+on the latter (the model form is not the inference's to fix), the truth-based errors are
+reported beside them.
+
     python experiments/brownian_bias.py [--quick]
 """
 from __future__ import annotations
@@ -27,7 +34,8 @@ from common import quick_seed_arguments, run_dir, write_metrics
 
 import bayespd as bp
 from bayespd.infer import fit
-from bayespd.infer.likelihoods import StationaryMarginal
+from bayespd.infer.likelihoods import NoiseCovariance, StationaryMarginal
+from bayespd.infer.pseudo_true import chain_kl, euler_maruyama_chain, gaussian_kl, kl_projection
 from bayespd.solvers import Langevin, karhunen_loeve, linear_elastic, white_noise
 from models.brownian_bias import stationary, trajectory
 
@@ -50,31 +58,68 @@ def material(truth):
     return {k: torch.tensor(truth[k]) for k in ("K", "G", "delta")}
 
 
+BOUNDS = {"K": (0.0, np.inf), "G": (0.0, np.inf), "delta": (H, DELTA_MAX), "eta": (0.0, np.inf),
+          "sigma": (0.0, np.inf), "sigma_c": (0.0, np.inf), "length": (0.0, np.inf)}
+
+
 def stationary_data(frames: int, seed: int):
-    """Observation points (every other coarse particle right of the clamp) and frames of the
-    h/2 model's invariant law there, plus noise."""
+    """Observation points (every other coarse particle right of the clamp), frames of the h/2
+    model's invariant law there plus noise, and that law."""
     x = plate(H, DELTA_MAX, EPS).particles.x
     points = x[(x[:, 0] > CLAMP)][::2]
     fine = plate(H / 2, TRUTH["delta"], EPS / 4, points)
     law = StationaryMarginal(fine)(material(TRUTH), TRUTH["eta"], TRUTH["sigma"])
     torch.manual_seed(seed)
-    return points, law.sample((frames,)).detach()
+    return points, law.sample((frames,)).detach(), law
 
 
-def report(tree, truth, names):
+def starts(names) -> list[dict]:
+    """Starts of the KL projection: the truth with delta at five points of (h, delta_max)
+    (its kinks split delta into basins)."""
+    return [{**{k: TRUTH[k] for k in names}, "delta": d} for d in np.linspace(H, DELTA_MAX, 7)[1:-1]]
+
+
+def stationary_pseudo_true(scene, law) -> dict:
+    """theta* of the coarse stationary model for the fine model's law of a frame."""
+    marginal = StationaryMarginal(scene)
+
+    def kl(t):
+        coarse = marginal({k: t[k] for k in ("K", "G", "delta")}, t["eta"], t["sigma"])
+        return gaussian_kl(law.loc, law.covariance_matrix, coarse.loc, coarse.covariance_matrix)
+
+    return kl_projection(kl, starts(("K", "G", "delta", "eta", "sigma")), BOUNDS)[0]
+
+
+def trajectory_pseudo_true(scene, data_noise: NoiseCovariance, model_noise, names, dt, u0, steps) -> dict:
+    """theta* of the coarse-step transitions for the data's chain (4 Euler-Maruyama
+    substeps of dt / 4 with ``data_noise``) from U_0 = u0; ``model_noise(t)`` the model's C."""
+    data = euler_maruyama_chain(scene, material(TRUTH), TRUTH["eta"], data_noise, dt, substeps=4)
+
+    def kl(t):
+        params = {k: t[k] for k in ("K", "G", "delta")}
+        return chain_kl(*data, *euler_maruyama_chain(scene, params, t["eta"], model_noise(t), dt), u0, steps)
+
+    return kl_projection(kl, starts(names), BOUNDS)[0]
+
+
+def report(tree, truth, names, pseudo_true):
     post, out = tree["posterior"], {}
     for k in names:
         draws = post[k].values.reshape(-1)
         lo, hi = np.quantile(draws, [0.05, 0.95])
         out[k] = {"mean": float(draws.mean()), "sd": float(draws.std()), "interval_90": [float(lo), float(hi)],
-                  "covers_truth": bool(lo <= truth[k] <= hi), "rel_error": float(abs(draws.mean() - truth[k]) / truth[k])}
+                  "covers_truth": bool(lo <= truth[k] <= hi), "rel_error": float(abs(draws.mean() - truth[k]) / truth[k]),
+                  "pseudo_true": pseudo_true[k], "covers_pseudo_true": bool(lo <= pseudo_true[k] <= hi),
+                  "rel_error_vs_pseudo_true": float(abs(draws.mean() - pseudo_true[k]) / pseudo_true[k])}
     return out
 
 
 def run_stationary(quick, seed):
-    points, y_all = stationary_data(max(FRAMES), seed)
+    points, y_all, law = stationary_data(max(FRAMES), seed)
     scene = plate(H, DELTA_MAX, EPS, points)
     names = ["K", "G", "delta", "eta", "sigma"]
+    star = stationary_pseudo_true(scene, law)
+    print("stationary pseudo-true: " + ", ".join(f"{k} {v:.4g}" for k, v in star.items()))
     model = stationary(scene, NOMINAL, eta_nominal=0.005, noise_scale=1e-3)
     init = {"K": 2800.0, "G": 1300.0, "delta": 2.5, "eta": 0.003, "sigma": 3e-4}
     results = {}
@@ -82,16 +127,17 @@ def run_stationary(quick, seed):
         data = {"y": y_all[:F]}
         svi = fit(model, data, "svi", svi_steps=200 if quick else 600, num_samples=500, seed=seed,
                   init_values=init, progress=False)
-        entry = {"svi": {"wall_time_s": float(svi.attrs["wall_time_s"]), "posterior": report(svi, TRUTH, names)}}
+        entry = {"svi": {"wall_time_s": float(svi.attrs["wall_time_s"]), "posterior": report(svi, TRUTH, names, star)}}
         if F == max(FRAMES):
             nuts = fit(model, data, "nuts", num_samples=60 if quick else 200, num_warmup=40 if quick else 150,
                        num_chains=2, chains="sequential", seed=seed, init_values=init, mass_matrix_from=svi,
                        progress=False)
-            entry["nuts"] = {"wall_time_s": float(nuts.attrs["wall_time_s"]), "posterior": report(nuts, TRUTH, names),
+            entry["nuts"] = {"wall_time_s": float(nuts.attrs["wall_time_s"]), "posterior": report(nuts, TRUTH, names, star),
                              "divergences": int(nuts["sample_stats"]["diverging"].sum())}
         results[F] = entry
         print(f"stationary F={F}: " + ", ".join(f"{k} {v['mean']:.4g}±{v['sd']:.2g}" for k, v in entry["svi"]["posterior"].items()))
-    return results, {"n_points": len(points), "n_obs": int(y_all.shape[1]), "n_particles": scene.particles.n}
+    return results, {"n_points": len(points), "n_obs": int(y_all.shape[1]), "n_particles": scene.particles.n,
+                     "stationary_pseudo_true": star}
 
 
 def run_trajectories(quick, seed):
@@ -100,11 +146,19 @@ def run_trajectories(quick, seed):
     cases = {"white": (plate(H, DELTA_MAX, EPS), None), "karhunen_loeve": (plate(H, DELTA_MAX, EPS, size=(8.0, 4.0)), KL)}
     for name, (scene, noise) in cases.items():
         c = scene.constraints
+        n = len(c.free_dofs)
         if noise is None:
-            cov = white_noise(TRUTH["sigma_c"], len(c.free_dofs))
+            cov = white_noise(TRUTH["sigma_c"], n)
+
+            def model_noise(t):
+                return NoiseCovariance.white(t["sigma_c"], n)
         else:
             cov = karhunen_loeve(scene.particles.x, TRUTH["sigma_c"], TRUTH["length"], rank=noise["rank"],
                                  nugget=noise["nugget"], dofs=c.free_dofs)
+
+            def model_noise(t, noise=noise):
+                return NoiseCovariance.karhunen_loeve(scene.particles.x, t["sigma_c"], t["length"], noise["rank"],
+                                                      noise["nugget"], c.free_dofs, scene.particles.dim)
         force = linear_elastic(scene.material, material(TRUTH), TRUTH["delta"], load=scene.force, eps=EPS, constraints=c)
         langevin = Langevin(force, cov, TRUTH["eta"], operator=force.matrix)
         dt = 0.3 * langevin.explicit_limit()
@@ -112,6 +166,9 @@ def run_trajectories(quick, seed):
         path = langevin.euler_maruyama(force.equilibrium(), dt / 4, 4 * steps, generator=seed, save_every=4).u
         model = trajectory(scene, NOMINAL, eta_nominal=0.005, sigma_c_nominal=0.5, dt=dt, noise=noise)
         names = ["K", "G", "delta", "eta", "sigma_c"] + ([] if noise is None else ["length"])
+        data_noise = NoiseCovariance(torch.as_tensor(cov.d), None if cov.G is None else torch.as_tensor(cov.G))
+        star = trajectory_pseudo_true(scene, data_noise, model_noise, names, dt, path[0], steps)
+        print(f"trajectory {name} pseudo-true: " + ", ".join(f"{k} {v:.4g}" for k, v in star.items()))
         data = {"y": path[1:], "u0": path[0]}
         init = {"K": 2800.0, "G": 1300.0, "delta": 2.5, "eta": 0.003, "sigma_c": 0.35, "length": 1.3}
         svi = fit(model, data, "svi", svi_steps=200 if quick else 600, num_samples=500, seed=seed,
@@ -119,9 +176,9 @@ def run_trajectories(quick, seed):
         nuts = fit(model, data, "nuts", num_samples=60 if quick else 200, num_warmup=40 if quick else 150,
                    num_chains=2, chains="sequential", seed=seed, init_values={k: init[k] for k in names},
                    mass_matrix_from=svi, progress=False)
-        results[name] = {"steps": steps, "dt": dt, "n_dofs": len(c.free_dofs),
-                         "svi": {"wall_time_s": float(svi.attrs["wall_time_s"]), "posterior": report(svi, TRUTH, names)},
-                         "nuts": {"wall_time_s": float(nuts.attrs["wall_time_s"]), "posterior": report(nuts, TRUTH, names),
+        results[name] = {"steps": steps, "dt": dt, "n_dofs": n, "pseudo_true": star,
+                         "svi": {"wall_time_s": float(svi.attrs["wall_time_s"]), "posterior": report(svi, TRUTH, names, star)},
+                         "nuts": {"wall_time_s": float(nuts.attrs["wall_time_s"]), "posterior": report(nuts, TRUTH, names, star),
                                   "divergences": int(nuts["sample_stats"]["diverging"].sum())}}
         print(f"trajectory {name}: " + ", ".join(f"{k} {v['mean']:.4g}±{v['sd']:.2g}"
                                                  for k, v in results[name]["nuts"]["posterior"].items()))
@@ -186,23 +243,27 @@ def main(quick: bool, seed: int = 0):
         ratio = one["svi"]["posterior"][k]["sd"] / many["svi"]["posterior"][k]["sd"]
         targets[f"stationary_{k}_sd_ratio_F1_over_F{max(FRAMES)}"] = target(ratio, ">= 2 (theory 4)", ratio >= 2)
     for k in ("K", "G", "eta"):
-        err = many["nuts"]["posterior"][k]["rel_error"]
-        targets[f"stationary_F{max(FRAMES)}_nuts_{k}_rel_error"] = target(err, 0.2, err < 0.2)
-    targets[f"stationary_F{max(FRAMES)}_nuts_eta_covered"] = target(
-        many["nuts"]["posterior"]["eta"]["covers_truth"], True, many["nuts"]["posterior"]["eta"]["covers_truth"])
+        err = many["nuts"]["posterior"][k]["rel_error_vs_pseudo_true"]
+        targets[f"stationary_F{max(FRAMES)}_nuts_{k}_rel_error_vs_pseudo_true"] = target(err, 0.2, err < 0.2)
+    covered = many["nuts"]["posterior"]["eta"]["covers_pseudo_true"]
+    targets[f"stationary_F{max(FRAMES)}_nuts_eta_covers_pseudo_true"] = target(covered, True, covered)
     for case, r in traj.items():
         for k, v in r["nuts"]["posterior"].items():
             if k != "delta":
-                targets[f"trajectory_{case}_{k}_rel_error"] = target(v["rel_error"], 0.1, v["rel_error"] < 0.1)
+                err = v["rel_error_vs_pseudo_true"]
+                targets[f"trajectory_{case}_{k}_rel_error_vs_pseudo_true"] = target(err, 0.1, err < 0.1)
     wall = time.perf_counter() - start
     targets["wall_time_s"] = target(wall, 1200.0, wall < 1200.0)
     methods = {f"stationary_F{f}": stat[f] for f in FRAMES}
     methods.update({f"trajectory_{k}": v for k, v in traj.items()})
     error_vs_time = [{"fit": f"{name}/{m}", "wall_time_s": r[m]["wall_time_s"],
-                      "eta_rel_error": r[m]["posterior"]["eta"]["rel_error"]}
+                      "eta_rel_error": r[m]["posterior"]["eta"]["rel_error"],
+                      "eta_rel_error_vs_pseudo_true": r[m]["posterior"]["eta"]["rel_error_vs_pseudo_true"]}
                      for name, r in methods.items() for m in ("svi", "nuts") if m in r]
+    stars = {"stationary": sizes["stationary_pseudo_true"], **{f"trajectory_{k}": v["pseudo_true"] for k, v in traj.items()}}
+    bias = {case: {k: v / TRUTH[k] - 1 for k, v in star.items()} for case, star in stars.items()}
     metrics = {"wall_time_s": wall, "truth": TRUTH, "targets": targets, "methods": methods,
-               "error_vs_run_time": error_vs_time,
+               "pseudo_true": stars, "model_form_bias": bias, "error_vs_run_time": error_vs_time,
                "settings": {"quick": quick, "seed": seed, "h_model": H, "h_data": H / 2, "delta_max": DELTA_MAX,
                             "eps": EPS, "frames": list(FRAMES), "kl": KL, **sizes,
                             "data": "stationary: exact invariant-law draws of the h/2 model (eps/4) + noise; "

@@ -1,5 +1,6 @@
 """Laplace approximation: exact on a linear Gaussian model; through the PD adjoint on a scene."""
 
+import json
 import math
 import warnings
 
@@ -173,3 +174,58 @@ def test_map_search_backs_off_from_refused_parameters():
         z, *_ = find_map(_Potential(f, [0.0]), progress=False)
     assert refused, "the search never tried a refused point: the test does not test"
     assert 1.9 < float(z[0]) <= 2
+
+
+def two_basins(y, pull_sd):
+    """x ~ N(-1/2, 2^2), y ~ N(x^2, 1/2^2) with y = 4 (modes near x = -2 and +2), and a
+    second datum 2 ~ N(x, pull_sd^2) that favours +2: potential gap U(-2) - U(+2) =
+    8 / pull_sd^2 - 1/2 to leading order (7.5 at pull_sd = 1, 1.5 at 2)."""
+    x = pyro.sample("x", dist.Normal(-0.5, 2.0))
+    pyro.sample("y", dist.Normal(x**2, 0.5), obs=y)
+    pyro.sample("pull", dist.Normal(x, pull_sd), obs=torch.tensor(2.0))
+
+
+@pytest.mark.parametrize("pull_sd, close", [(1.0, False), (2.0, True)])
+def test_map_from_several_starts_finds_the_lower_basin(pull_sd, close):
+    """From the prior median (-1/2) one search descends into the -2 basin; eight (the median
+    and a Latin hypercube of the prior) find +2, the lower potential, and list both modes;
+    a warning comes exactly when the two modes lie within 3 nats."""
+    from functools import partial
+
+    model = partial(two_basins, pull_sd=pull_sd)
+    data = {"y": torch.tensor(4.0)}
+    one = fit(model, data, "laplace", num_samples=50, progress=False)
+    assert float(one["posterior"]["x"].mean()) < -1.5
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        eight = fit(model, data, "laplace", num_samples=50, progress=False, map_starts=8)
+    modes = json.loads(eight.attrs["map_modes"])
+    assert float(eight["posterior"]["x"].mean()) > 1.5
+    assert [round(m["values"]["x"]) for m in modes] == [2, -2]
+    gap = modes[1]["potential"] - modes[0]["potential"]
+    assert abs(gap - (8 / pull_sd**2 - 0.5)) < 0.5  # the leading-order gap of the docstring
+    assert any("multimodal" in str(w.message) for w in caught) == close
+    with pytest.raises(ValueError, match="init='map'"):
+        fit(model, data, "nuts", map_starts=8, progress=False)
+
+
+def test_prior_starts_are_a_latin_hypercube():
+    """Eight starts of two independent sites: each site has exactly one start in each
+    eighth of its prior (CDF values, up to 4 sd of the empirical quantile of 128 draws),
+    and the two sites' bands are not paired in order."""
+    from bayespd.infer.mode import prior_starts
+
+    def model():
+        pyro.sample("a", dist.Normal(0.0, 1.0))
+        pyro.sample("b", dist.LogNormal(1.0, 0.5))
+
+    space = Unconstrained(model, {}, init_to_median)
+    z = torch.stack(prior_starts(space, model, {}, init_to_median, 8, seed=4))
+    values = space.constrain(z)
+    cdf = {"a": dist.Normal(0.0, 1.0).cdf(values["a"]), "b": dist.Normal(1.0, 0.5).cdf(values["b"].log())}
+    centres = (np.arange(8) + 0.5) / 8
+    sd = np.sqrt(centres * (1 - centres) / 128)
+    for k in cdf:
+        got = np.sort(cdf[k].numpy())
+        assert np.all(np.abs(got - centres) <= 4 * sd), (k, got)
+    assert not np.array_equal(np.argsort(values["a"].numpy()), np.argsort(values["b"].numpy()))

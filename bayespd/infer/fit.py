@@ -2,6 +2,7 @@
 
 import json
 import time
+from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -13,6 +14,7 @@ from pyro.infer.autoguide.initialization import init_to_median, init_to_value
 from . import laplace as _laplace
 from .checks import check_data, check_observed_shape, check_priors
 from .datatree import build_tree
+from .mode import best_map
 from .mcmc import ChainSpec, run_chains
 from .replay import replay
 from .space import Unconstrained, init_trace
@@ -63,7 +65,7 @@ def _scene_layout(scene, data, observed, dims, coords, constant_data):
 def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, num_chains=4,
         seed=0, chains="auto", init_values=None, init="median", dense_mass=False,
         mass_matrix_from=None, adapt_mass=True, target_accept=0.8, max_tree_depth=10,
-        trajectory_length=None, guide="mvn", svi_steps=2000, svi_lr=0.02, svi_rank=None,
+        trajectory_length=None, map_starts=1, guide="mvn", svi_steps=2000, svi_lr=0.02, svi_rank=None,
         svi_particles=1, hessian="exact", checkpoint=None, checkpoint_every=50, scene=None,
         constant_data=None, progress=True, observed="y", dims=None, coords=None):
     """Posterior of ``model(**data)`` as an ArviZ-style ``xarray.DataTree``.
@@ -72,7 +74,10 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
     (``bayespd.infer.checks``): NaN data outside (or under) ``data["mask"]``, observations of
     the wrong shape, and, given ``scene``, priors whose support leaves the physical range.
     Initial values: ``init_values`` (other sites at the prior median); ``init="map"`` starts
-    at the MAP found from there (L-BFGS on the unconstrained space).
+    at the MAP found from there (L-BFGS on the unconstrained space), or, with
+    ``map_starts`` > 1, at the lowest of that many searches, the others from a Latin
+    hypercube of the prior (``bayespd.infer.mode``; a warning when two modes lie within 3
+    nats; the modes found go to the ``map_modes`` attribute). Laplace uses the same search.
 
     * ``"nuts"`` / ``"hmc"``: ``num_chains`` chains of ``num_warmup`` + ``num_samples``
       (see ``bayespd.infer.mcmc`` for seeds, ``chains="auto" | "sequential" | "processes"``
@@ -109,6 +114,8 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
         raise ValueError(f"method must be one of {METHODS}, not {method!r}")
     if init not in ("median", "map"):
         raise ValueError(f"init must be 'median' or 'map', not {init!r}")
+    if map_starts != 1 and init != "map" and method != "laplace":
+        raise ValueError("map_starts searches for the MAP to start from: pass init='map' too")
     check_data(data, observed)
     start_init = _initial(init_values)
     trace = init_trace(model, data, start_init)
@@ -118,13 +125,14 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
 
     start = time.perf_counter()
     settings = {"num_samples": num_samples, "seed": seed, "observed": observed, "init": init,
-                "init_values": sorted(init_values or {})}
+                "init_values": sorted(init_values or {}), "map_starts": map_starts}
     attrs = {}
+    search = _Search(map_starts, seed, progress)
     if method in ("nuts", "hmc"):
         posterior, stats, grad_evals = _mcmc(
             model, data, method, num_samples, num_warmup, num_chains, seed, chains, start_init,
             init, dense_mass, mass_matrix_from, adapt_mass, target_accept, max_tree_depth,
-            trajectory_length, checkpoint, checkpoint_every, observed, progress)
+            trajectory_length, checkpoint, checkpoint_every, observed, progress, search)
         settings.update(num_warmup=num_warmup, num_chains=num_chains, dense_mass=dense_mass,
                         adapt_mass=adapt_mass,
                         mass_matrix_from=mass_matrix_from if isinstance(mass_matrix_from, str)
@@ -133,19 +141,23 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
                          "hmc": {"trajectory_length": trajectory_length}}[method])
     elif method == "svi":
         if init == "map":
-            start_init = _map_init(model, data, start_init, progress)
+            start_init = _map_init(model, data, start_init, search)
         posterior, stats = run_svi(model, data, guide, num_samples, seed, svi_steps, svi_lr,
                                    start_init, progress, svi_rank, svi_particles)
         grad_evals = svi_steps * svi_particles
         settings.update(guide=guide, svi_steps=svi_steps, svi_lr=svi_lr, svi_rank=svi_rank,
                         svi_particles=svi_particles)
     else:
-        space, gaussian, info = _laplace.laplace(model, data, start_init, observed, hessian, progress)
+        space, gaussian, info = _laplace.laplace(model, data, start_init, observed, hessian, progress,
+                                                 map_starts, seed)
         posterior = _laplace.draws(space, gaussian, num_samples, seed)
         stats, grad_evals = _laplace.stats(gaussian), info.pop("gradient_evaluations")
         settings.update(hessian=hessian)
         attrs.update(map_potential=info["map_potential"], map_grad_norm=info["map_grad_norm"])
+        search.modes = info["map_modes"]
     wall_time = time.perf_counter() - start
+    if search.modes is not None:
+        attrs["map_modes"] = search.modes
 
     start = time.perf_counter()
     pyro.set_rng_seed(seed)
@@ -175,14 +187,27 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
     return build_tree(groups, attrs, dims, coords)
 
 
-def _map_init(model, data, init, progress):
+@dataclass
+class _Search:
+    """How the MAP is searched for (``best_map``), and the modes the search found."""
+
+    starts: int
+    seed: int
+    progress: bool
+    modes: str | None = None
+
+
+def _map_init(model, data, init, search: _Search):
+    """An init strategy at the MAP."""
     space = Unconstrained(model, data, init)
-    return _laplace.init_at(space, _laplace.find_map(space, progress=progress)[0])
+    result, search.modes = best_map(space, model, data, init, search.starts, search.seed,
+                                    progress=search.progress)
+    return _laplace.init_at(space, result[0])
 
 
 def _mcmc(model, data, kernel, num_samples, num_warmup, num_chains, seed, chains, init_fn, init,
           dense_mass, mass_matrix_from, adapt_mass, target_accept, max_tree_depth, trajectory_length,
-          checkpoint, checkpoint_every, observed, progress):
+          checkpoint, checkpoint_every, observed, progress, search):
     if not adapt_mass and mass_matrix_from is None:
         raise ValueError("adapt_mass=False keeps a seeded mass matrix: give mass_matrix_from "
                          "('laplace' or a DataTree), or leave adaptation on")
@@ -191,14 +216,16 @@ def _mcmc(model, data, kernel, num_samples, num_warmup, num_chains, seed, chains
         if mass_matrix_from != "laplace":
             raise ValueError("mass_matrix_from must be a DataTree or 'laplace', not "
                              f"{mass_matrix_from!r}")
-        space, gaussian, _ = _laplace.laplace(model, data, init_fn, observed, "exact", progress)
+        space, gaussian, info = _laplace.laplace(model, data, init_fn, observed, "exact", progress,
+                                                 search.starts, seed)
+        search.modes = info["map_modes"]
         seed_covariance = gaussian.covariance
         if init == "map":
             init_fn = _laplace.init_at(space, gaussian.mean)
     elif mass_matrix_from is not None:
         seed_covariance = unconstrained_covariance(model, data, mass_matrix_from)
     if init == "map" and mass_matrix_from != "laplace":
-        init_fn = _map_init(model, data, init_fn, progress)
+        init_fn = _map_init(model, data, init_fn, search)
     options = ({"target_accept_prob": target_accept, "max_tree_depth": max_tree_depth}
                if kernel == "nuts" else {"trajectory_length": trajectory_length,
                                          "target_accept_prob": target_accept})

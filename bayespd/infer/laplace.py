@@ -18,8 +18,6 @@ transforms. Two Hessians:
   small.
 """
 
-import math
-import warnings
 from dataclasses import dataclass
 from functools import partial
 
@@ -30,12 +28,7 @@ from pyro import poutine
 from pyro.distributions import Independent, MaskedDistribution
 from pyro.distributions.torch_distribution import ExpandedDistribution
 from pyro.infer.autoguide.initialization import init_to_value
-from scipy.optimize import minimize
-from tqdm.auto import tqdm
-
-from bayespd.materials import ParameterRangeError
-from bayespd.sparse import NotPositiveDefiniteError
-
+from .mode import best_map, find_map  # noqa: F401 (find_map: part of this module's interface)
 from .space import Unconstrained
 
 HESSIANS = ("exact", "gauss-newton")
@@ -76,12 +69,6 @@ class Gaussian:
         """(n, dim) draws: mean + L^-T eps with precision = L L^T."""
         eps = torch.randn(n, self.mean.numel(), generator=generator, dtype=self.mean.dtype)
         return self.mean + torch.linalg.solve_triangular(self._chol.T, eps.T, upper=True).T
-
-
-def _grad(space, z):
-    z = z.detach().requires_grad_()
-    u = space.potential(z)
-    return u.detach(), torch.autograd.grad(u, z, materialize_grads=True)[0]
 
 
 def exact_hessian(space, z) -> torch.Tensor:
@@ -133,84 +120,16 @@ def init_at(space, z):
     return init_to_value(values={k: v.detach() for k, v in space.constrain(z.detach()).items()})
 
 
-def find_map(space, hessian_fn=None, gtol=1e-8, max_iter=1000, newton_steps=5, restarts=20,
-             progress=True):
-    """Mode of the potential: L-BFGS from ``space.initial``, then (given ``hessian_fn``)
-    Newton steps while the Hessian is positive definite and they lower the potential and
-    its gradient. Returns (z, potential,
-    gradient, Hessian or None, gradient evaluations)."""
-    def value_and_grad(x):
-        """A trial step into parameters the model refuses (non-finite or not positive
-        definite) is an infinite potential: the line search backs off from it."""
-        try:
-            u, g = _grad(space, torch.as_tensor(x))
-        except (NotPositiveDefiniteError, ParameterRangeError):
-            return math.inf, np.zeros_like(x)
-        return float(u), g.numpy()
-
-    x, evaluations, f = space.initial.numpy(), 0, math.inf
-    with tqdm(desc="MAP (L-BFGS)", disable=not progress) as bar:
-        for _ in range(restarts):  # a line search that meets a kink (the partial-volume weights
-            # are piecewise linear in delta) or a refused point stops L-BFGS early, and scipy
-            # may call that convergence: restart from there while the potential still falls
-            res = minimize(value_and_grad, x, jac=True, method="L-BFGS-B",
-                           options={"maxiter": max_iter, "gtol": gtol, "ftol": 1e-15},
-                           callback=lambda _: bar.update())
-            evaluations += res.nfev
-            fell = res.fun < f - 1e-12 * abs(res.fun)
-            x, f = res.x, min(f, res.fun)
-            if "GRADIENT" in str(res.message) or not fell:
-                break
-    z = torch.as_tensor(x)
-    u, g = _grad(space, z)
-    evaluations += 1
-    h = None if hessian_fn is None else hessian_fn(z)
-    for _ in range(newton_steps if h is not None else 0):
-        chol, info = torch.linalg.cholesky_ex((h + h.T) / 2)
-        if info:  # not a minimum's curvature: leave it to Gaussian to refuse
-            break
-        z_new = z - torch.cholesky_solve(g[:, None], chol)[:, 0]
-        u_new, g_new = _grad(space, z_new)
-        evaluations += 1
-        if not (u_new <= u and g_new.norm() < g.norm()):
-            break
-        z, u, g, h = z_new, u_new, g_new, hessian_fn(z_new)
-    _warn_if_not_a_mode(g, h, u, res)
-    return z, float(u), g, h, evaluations
-
-
-def _warn_if_not_a_mode(g, h, u, res):
-    """Warn when the search ended where the gradient does not vanish: Newton decrement
-    g^T H^-1 g above 1e-6 (more than 1e-3 posterior sd from the quadratic model's mode), or,
-    without a Hessian, when max |grad| exceeds 1e-4 max(1, |potential|) (a stall at a kink
-    ends L-BFGS through its relative-reduction test, which scipy also calls success)."""
-    if h is not None:
-        chol, info = torch.linalg.cholesky_ex((h + h.T) / 2)
-        decrement = float(g @ torch.cholesky_solve(g[:, None], chol)[:, 0]) if not info else math.inf
-        if decrement <= 1e-6:
-            return
-        detail = f"Newton decrement {decrement:.3g}"
-    elif float(g.abs().max()) <= 1e-4 * max(1.0, abs(float(u))):
-        return
-    else:
-        detail = f"L-BFGS: {res.message}"
-    warnings.warn(f"the MAP search ended where the gradient does not vanish (|grad| = "
-                  f"{float(g.norm()):.3g}, {detail}): the potential has kinks in delta where a "
-                  "bond length crosses delta +- h/2, and a search can stop at one (a spurious "
-                  "local mode, or a mode on a kink, where a Laplace approximation is not "
-                  "defined); start elsewhere (init_values), fix delta, or use NUTS",
-                  RuntimeWarning, stacklevel=3)
-
-
-def laplace(model, data, init, observed="y", hessian="exact", progress=True):
-    """Laplace approximation of ``model(**data)``: (space, Gaussian, info dict)."""
+def laplace(model, data, init, observed="y", hessian="exact", progress=True, starts=1, seed=0):
+    """Laplace approximation of ``model(**data)`` at the best of ``starts`` MAP searches
+    (``best_map``): (space, Gaussian, info dict)."""
     if hessian not in HESSIANS:
         raise ValueError(f"hessian must be one of {HESSIANS}, not {hessian!r}")
     space = Unconstrained(model, data, init)
     hessian_fn = (partial(exact_hessian, space) if hessian == "exact"
                   else partial(gauss_newton_hessian, model, data, observed, space))
-    z, u, g, h, evaluations = find_map(space, hessian_fn, progress=progress)
-    info = {"map_potential": u, "map_grad_norm": float(g.norm()),
+    (z, u, g, h, evaluations), modes = best_map(space, model, data, init, starts, seed, hessian_fn, progress)
+    info = {"map_potential": u, "map_grad_norm": float(g.norm()), "map_modes": modes,
             "gradient_evaluations": evaluations, "hessian": hessian}
     return space, Gaussian(z, h, space.labels), info
 
