@@ -117,3 +117,14 @@ def test_damage_ode_breaks_when_its_clock_runs_out():
     frac = StochasticFracture(body, law, white_noise(1e-6, len(body.constraints.free_dofs)), eta=1e-15)
     run = frac.run(lams, dt=1.0, seed=0)
     assert run.load_factor[run.first_failure] == pytest.approx(predicted, abs=1e-12)
+
+
+def test_a_body_that_came_loose_everywhere_has_nothing_to_solve(plate):
+    """Every bond broken (eps = 0): no dof is solved for, no operator is made, and a step
+    leaves u as it is."""
+    frac = driver(plate, 1.0)
+    u = 0.01 * torch.ones(plate.particles.n, 2)
+    gone = frac._factorised(torch.zeros(plate.n_bonds), u, 512)
+    assert gone.A is None and len(gone.active) == 0
+    step, A = frac._stepper(torch.zeros(plate.n_bonds), u, gone, exact=False)
+    assert A is None and torch.equal(step(u, 0.5, torch.zeros(plate.n_bonds), 1.0, torch.Generator()), u)

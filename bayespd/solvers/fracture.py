@@ -167,8 +167,10 @@ class StochasticFracture:
         """A fresh operator at (intact, u) on the dofs still solved for."""
         body = self.body
         active = body.active(intact)
-        tiles = body.tiles(active, COLUMN_TILE * body.particles.h)
-        A = LocallyUpdated(body.operator(intact, active, u), max_rank, groups=tiles) if len(active) else None
+        A = None
+        if len(active):
+            tiles = body.tiles(active, COLUMN_TILE * body.particles.h)
+            A = LocallyUpdated(body.operator(intact, active, u), max_rank, groups=tiles)
         return _Operated(A, A, intact, u, active)
 
     def _updated(self, base: "_Operated", intact, u, max_rank: int) -> "_Operated":
