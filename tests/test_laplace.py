@@ -144,7 +144,7 @@ class _Potential:
 def test_map_search_warns_when_it_ends_on_a_kink():
     """|z - 1| + z^2/100 has its minimum on a kink at z = 1 (|grad| there is about 1, not
     0): the search must say so; the smooth (z - 1)^2 must not warn."""
-    from bayespd.infer.laplace import find_map
+    from bayespd.infer.mode import find_map
     kink = _Potential(lambda z: (z - 1).abs().sum() + (z**2).sum() / 100, [4.0])
     with pytest.warns(RuntimeWarning, match="gradient does not vanish"):
         z, *_ = find_map(kink, progress=False)
@@ -159,7 +159,7 @@ def test_map_search_warns_when_it_ends_on_a_kink():
 def test_map_search_backs_off_from_refused_parameters():
     """A trial point the model refuses (a modulus over- or underflowed) is an infinite
     potential, not an error: (z - 3)^2 with every z > 2 refused ends near 2, from below."""
-    from bayespd.infer.laplace import find_map
+    from bayespd.infer.mode import find_map
     from bayespd.materials import ParameterRangeError
 
     refused = []

@@ -28,7 +28,7 @@ from pyro import poutine
 from pyro.distributions import Independent, MaskedDistribution
 from pyro.distributions.torch_distribution import ExpandedDistribution
 from pyro.infer.autoguide.initialization import init_to_value
-from .mode import best_map, find_map  # noqa: F401 (find_map: part of this module's interface)
+from .mode import best_map
 from .space import Unconstrained
 
 HESSIANS = ("exact", "gauss-newton")
