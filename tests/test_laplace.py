@@ -194,11 +194,12 @@ def test_map_from_several_starts_finds_the_lower_basin(pull_sd, close):
 
     model = partial(two_basins, pull_sd=pull_sd)
     data = {"y": torch.tensor(4.0)}
-    one = fit(model, data, "laplace", num_samples=50, progress=False)
+    start = {"x": -0.5}  # the prior median, given (Pyro's init_to_median draws from the global RNG)
+    one = fit(model, data, "laplace", num_samples=50, progress=False, init_values=start)
     assert float(one["posterior"]["x"].mean()) < -1.5
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        eight = fit(model, data, "laplace", num_samples=50, progress=False, map_starts=8)
+        eight = fit(model, data, "laplace", num_samples=50, progress=False, map_starts=8, init_values=start)
     modes = json.loads(eight.attrs["map_modes"])
     assert float(eight["posterior"]["x"].mean()) > 1.5
     assert [round(m["values"]["x"]) for m in modes] == [2, -2]
@@ -229,3 +230,20 @@ def test_prior_starts_are_a_latin_hypercube():
         got = np.sort(cdf[k].numpy())
         assert np.all(np.abs(got - centres) <= 4 * sd), (k, got)
     assert not np.array_equal(np.argsort(values["a"].numpy()), np.argsort(values["b"].numpy()))
+
+
+def test_search_ends_are_one_mode_unless_a_barrier_separates_them():
+    """On the two-basin model: x = 1.9 and x = 2.0 (one basin) are one mode, x = -2 and
+    x = +2 are two (the potential at x = 0 is ~32 nats above them)."""
+    from functools import partial
+
+    from bayespd.infer.mode import separated
+
+    space = Unconstrained(partial(two_basins, pull_sd=2.0), {"y": torch.tensor(4.0)}, init_to_median)
+
+    def at(x):
+        z = torch.tensor([x], dtype=torch.float64)
+        return z, float(space.potential(z))
+
+    assert not separated(space, *at(1.9), *at(2.0))
+    assert separated(space, *at(-2.0), *at(2.0))

@@ -25,6 +25,7 @@ from bayespd.sparse import NotPositiveDefiniteError
 from .space import init_trace
 
 MODE_GAP = 3.0  # nats: a second mode closer than this to the best holds >= 5 % of its density
+BARRIER = 1.0  # nats above the higher of two search ends that make them separate modes
 
 
 def _grad(space, z):
@@ -120,11 +121,30 @@ def prior_starts(space, model, data, init, n: int, seed: int) -> list[torch.Tens
     return list(z.reshape(n, -1).detach())
 
 
+def separated(space, za, ua: float, zb, ub: float) -> bool:
+    """True when the searches that ended at za and zb found different basins: the potential
+    rises more than BARRIER nats above the higher end somewhere on the segment between them
+    (at 1/4, 1/2, 3/4; a point the model refuses counts as a barrier). Searches that stall
+    at different kinks of one basin see no barrier and are one mode."""
+    if float((za - zb).abs().max()) <= 1e-6 * max(1.0, float(za.abs().max())):
+        return False
+    top = max(ua, ub)
+    for t in (0.25, 0.5, 0.75):
+        try:
+            u = float(space.potential((1 - t) * za + t * zb).detach())
+        except (NotPositiveDefiniteError, ParameterRangeError):
+            return True
+        if not u <= top + BARRIER:
+            return True
+    return False
+
+
 def best_map(space, model, data, init, starts: int = 1, seed: int = 0, hessian_fn=None, progress=True):
     """``find_map`` from ``space.initial`` (the point ``init`` gives ``model(**data)``) and,
     for ``starts`` > 1, from ``starts - 1`` prior points (``prior_starts``); returns (the
-    lowest search's result, the distinct modes found as a JSON list of {potential, values},
-    lowest first). Warns when a second mode lies within MODE_GAP nats of the lowest."""
+    lowest search's result, the distinct modes found (``separated``) as a JSON list of
+    {potential, values}, lowest first). Warns when a second mode lies within MODE_GAP nats
+    of the lowest."""
     if int(starts) != starts or starts < 1:
         raise ValueError(f"the number of MAP starts must be a positive integer, got {starts}")
     points = [None] + (prior_starts(space, model, data, init, int(starts) - 1, seed) if starts > 1 else [])
@@ -133,7 +153,7 @@ def best_map(space, model, data, init, starts: int = 1, seed: int = 0, hessian_f
     best, evaluations = results[0], sum(r[4] for r in results)
     modes = []
     for z, u, *_ in results:
-        if all(float((z - m).abs().max()) > 1e-3 * max(1.0, float(m.abs().max())) for m, _ in modes):
+        if all(separated(space, m, um, z, u) for m, um in modes):
             modes.append((z, u))
     close = [u for _, u in modes[1:] if u - best[1] < MODE_GAP]
     if close:
