@@ -6,7 +6,7 @@ of several searches, from the initial point and from a Latin hypercube of prior 
 PD likelihood can have several basins in delta, split by kinks where a bond length crosses
 delta +- h/2 (the partial-volume weights are piecewise linear in delta): on the 64-particle
 calibration plate, searches from the prior median end in one of three basins with
-potentials 5-120 nats apart, the lowest near the true delta, and a chain started in
+potentials up to 120 nats apart, the lowest usually near the true delta, and a chain started in
 another stays there (``experiments/sbc.py --free-delta``).
 """
 

@@ -12,7 +12,7 @@ warmup then took ~1.8x the gradients (1.8-5.6 k per fit) and mixed delta poorly 
 through warmup and target_accept 0.95 (benchmarks/README.md, inference.py: 2.8x fewer
 gradients per effective draw, no divergences at the kinks), and, for every method, the MAP
 taken as the best of 8 searches (``FREE_DELTA``): the kinks split delta into basins whose
-modes lie 5-120 nats apart, and one search from the prior median ends in the wrong basin
+modes lie up to 120 nats apart, and one search from the prior median ends in the wrong basin
 often enough to fail SBC (40 of 100 NUTS intervals missed delta with one search).
 
 Replication ``i`` draws (K, G, delta, sigma) and then y from the model itself (seed
