@@ -31,6 +31,7 @@ import time
 
 import numpy as np
 import torch
+from torch.distributions import kl_divergence
 
 import common  # noqa: F401  (puts the repository root on sys.path for models/)
 from common import quick_seed_arguments, run_dir, write_metrics
@@ -38,7 +39,7 @@ from common import quick_seed_arguments, run_dir, write_metrics
 import bayespd as bp
 from bayespd.infer import fit
 from bayespd.infer.likelihoods import NoiseCovariance, StationaryMarginal
-from bayespd.infer.pseudo_true import chain_kl, euler_maruyama_chain, gaussian_kl, kl_projection
+from bayespd.infer.pseudo_true import chain_kl, euler_maruyama_chain, kl_projection
 from bayespd.solvers import Langevin, karhunen_loeve, linear_elastic, white_noise
 from models.brownian_bias import stationary, trajectory
 
@@ -94,11 +95,8 @@ def stationary_fits(scene, law, y) -> tuple[dict, dict]:
     def coarse(t):
         return marginal({k: t[k] for k in ("K", "G", "delta")}, t["eta"], t["sigma"])
 
-    def kl(t):
-        law_t = coarse(t)
-        return gaussian_kl(law.loc, law.covariance_matrix, law_t.loc, law_t.covariance_matrix)
-
-    star = kl_projection(kl, starts(STATIONARY), BOUNDS)[0]
+    star = kl_projection(lambda t: kl_divergence(law, coarse(t)), starts(STATIONARY), BOUNDS)[0]
+    # the MLE is the KL projection of the frames' empirical law: -mean log-likelihood up to a constant
     mle = kl_projection(lambda t: -coarse(t).log_prob(y).mean(), starts(STATIONARY), BOUNDS)[0]
     return star, mle
 

@@ -9,8 +9,8 @@ step: the no-inverse-crime rule) make the posterior concentrate, as the data gro
 model-form bias; posterior - theta* is the error of the inference. For the Gaussian
 likelihoods of the Brownian-bias model the KL is closed form:
 
-* stationary frames: KL(N(m, S) || N(m', S')) = [tr(S'^-1 S) + (m' - m)^T S'^-1 (m' - m)
-  - n + log det S' - log det S] / 2 per frame;
+* stationary frames: KL(N(m, S) || N(m', S')) per frame (``torch.distributions.kl_divergence``
+  of the two multivariate normals);
 * a path U_0..U_T of a linear chain U_{n+1} = M U_n + c + N(0, Sigma) (the data's, with U_0
   fixed) scored by the model's transitions N(B U_n + a, Q): the sum over n of the expected
   per-step KL, E over U_n ~ N(mu_n, P_n) of KL(N(M U_n + c, Sigma) || N(B U_n + a, Q)) =
@@ -69,16 +69,6 @@ def kl_projection(kl, init, bounds: dict, gtol: float = 1e-9, max_iter: int = 50
                                f"|grad| = {np.abs(res.jac).max():.3g})")
     theta = {k: float(v) for k, v in constrain(torch.as_tensor(res.x)).items()}
     return theta, float(res.fun)
-
-
-def gaussian_kl(m, S, m2, S2) -> torch.Tensor:
-    """KL(N(m, S) || N(m2, S2)) for dense covariances."""
-    L2 = torch.linalg.cholesky(S2)
-    d = m2 - m
-    quad = torch.cholesky_solve(d[:, None], L2)[:, 0] @ d
-    trace = torch.trace(torch.cholesky_solve(S, L2))
-    logdet = 2 * torch.log(torch.diagonal(L2)).sum() - torch.linalg.slogdet(S)[1]
-    return 0.5 * (trace + quad - len(m) + logdet)
 
 
 def chain_kl(M, c, Sigma, B, a, Q, u0, steps: int) -> torch.Tensor:

@@ -36,7 +36,7 @@ import torch
 
 from bayespd.assembly import numeric_values
 from bayespd.boundary import Constraints
-from bayespd.damage import DamageODE, damage_index
+from bayespd.damage import DamageIndex, DamageODE
 from bayespd.materials import BondBased
 from bayespd.nonlinear import NonlinearBonds
 from bayespd.solvers.connectivity import FloatingPieces
@@ -343,6 +343,7 @@ def quasi_static(body: LoadedBody, load_factors, damage=None, rtol: float = 1e-1
     u = torch.zeros(p.n, p.dim)
     active = body.active(intact)
     tangent = body.tangent(intact, active)
+    damage_index = DamageIndex(p, body.bonds)
     rec = {k: [] for k in ("lam", "disp", "reac", "broken", "phi", "its", "solves")}
     separated = False
     for lam in np.asarray(load_factors, dtype=float):
@@ -368,7 +369,7 @@ def quasi_static(body: LoadedBody, load_factors, damage=None, rtol: float = 1e-1
         rec["disp"].append(body.mean_displacement(u).numpy())
         rec["reac"].append(body.reaction(u, intact).numpy())
         rec["broken"].append(int((intact < 0.5).sum()))
-        rec["phi"].append(damage_index(p, body.bonds, intact).numpy())
+        rec["phi"].append(damage_index(intact).numpy())
         rec["its"].append(its)
         rec["solves"].append(solves)
         if separated:
