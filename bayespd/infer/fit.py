@@ -12,15 +12,19 @@ import torch
 from pyro.infer.autoguide.initialization import init_to_median, init_to_value
 
 from . import laplace as _laplace
+from .laplace import NotPositiveDefiniteHessian
 from .checks import check_data, check_observed_shape, check_priors
 from .datatree import build_tree
-from .mode import best_map
+from .mixture import (allocate, cell_log_masses, cells, kept, laplace_log_mass, merged, mode_weights,
+                      stratified)
+from .mode import best_map, modes_json
 from .mcmc import ChainSpec, run_chains
 from .replay import replay
 from .space import Unconstrained, init_trace
 from .svi import run_svi
 
 METHODS = ("nuts", "hmc", "svi", "laplace")
+MODES = ("best", "weighted")
 
 
 def unconstrained_covariance(model, data, tree) -> torch.Tensor:
@@ -65,7 +69,7 @@ def _scene_layout(scene, data, observed, dims, coords, constant_data):
 def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, num_chains=4,
         seed=0, chains="auto", init_values=None, init="median", dense_mass=False,
         mass_matrix_from=None, adapt_mass=True, target_accept=0.8, max_tree_depth=10,
-        trajectory_length=None, map_starts=1, guide="mvn", svi_steps=2000, svi_lr=0.02, svi_rank=None,
+        trajectory_length=None, map_starts=1, modes="best", guide="mvn", svi_steps=2000, svi_lr=0.02, svi_rank=None,
         svi_particles=1, hessian="exact", checkpoint=None, checkpoint_every=50, scene=None,
         constant_data=None, progress=True, observed="y", dims=None, coords=None):
     """Posterior of ``model(**data)`` as an ArviZ-style ``xarray.DataTree``.
@@ -78,6 +82,13 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
     ``map_starts`` > 1, at the lowest of that many searches, the others from a Latin
     hypercube of the prior (``bayespd.infer.mode``; a warning when two modes lie within 3
     nats; the modes found go to the ``map_modes`` attribute). Laplace uses the same search.
+    ``modes="weighted"`` (NUTS, HMC, Laplace; needs ``map_starts`` > 1) fits every mode
+    found whose Laplace mass is within a factor 1000 of the largest, NUTS/HMC with
+    ``num_chains`` chains started there (seeds ``seed + j num_chains`` for the j-th mode, the
+    mode's own Laplace covariance as metric under ``mass_matrix_from="laplace"``), and mixes
+    the fits by each mode's estimated mass (``bayespd.infer.mixture``: modified harmonic mean
+    of the chains' draws; Laplace's mass for Laplace): every chain of the result holds each
+    mode's share of ``num_samples``. The modes, masses and weights go to ``mode_weights``.
 
     * ``"nuts"`` / ``"hmc"``: ``num_chains`` chains of ``num_warmup`` + ``num_samples``
       (see ``bayespd.infer.mcmc`` for seeds, ``chains="auto" | "sequential" | "processes"``
@@ -116,6 +127,12 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
         raise ValueError(f"init must be 'median' or 'map', not {init!r}")
     if map_starts != 1 and init != "map" and method != "laplace":
         raise ValueError("map_starts searches for the MAP to start from: pass init='map' too")
+    if modes not in MODES:
+        raise ValueError(f"modes must be one of {MODES}, not {modes!r}")
+    if modes == "weighted" and (method == "svi" or map_starts < 2 or (method != "laplace" and init != "map")):
+        raise ValueError("modes='weighted' fits every mode that several MAP searches find: use it "
+                         "with method 'nuts', 'hmc' or 'laplace', map_starts >= 2 (e.g. 8) and, "
+                         "for MCMC, init='map'")
     check_data(data, observed)
     start_init = _initial(init_values)
     trace = init_trace(model, data, start_init)
@@ -125,9 +142,9 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
 
     start = time.perf_counter()
     settings = {"num_samples": num_samples, "seed": seed, "observed": observed, "init": init,
-                "init_values": sorted(init_values or {}), "map_starts": map_starts}
+                "init_values": sorted(init_values or {}), "map_starts": map_starts, "modes": modes}
     attrs = {}
-    search = _Search(map_starts, seed, progress)
+    search = _Search(map_starts, seed, progress, modes == "weighted")
     if method in ("nuts", "hmc"):
         posterior, stats, grad_evals = _mcmc(
             model, data, method, num_samples, num_warmup, num_chains, seed, chains, start_init,
@@ -147,6 +164,10 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
         grad_evals = svi_steps * svi_particles
         settings.update(guide=guide, svi_steps=svi_steps, svi_lr=svi_lr, svi_rank=svi_rank,
                         svi_particles=svi_particles)
+    elif search.weighted:
+        posterior, stats, grad_evals = _weighted_laplace(model, data, start_init, observed, hessian,
+                                                         num_samples, search)
+        settings.update(hessian=hessian)
     else:
         space, gaussian, info = _laplace.laplace(model, data, start_init, observed, hessian, progress,
                                                  map_starts, seed)
@@ -158,6 +179,8 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
     wall_time = time.perf_counter() - start
     if search.modes is not None:
         attrs["map_modes"] = search.modes
+    if search.weights is not None:
+        attrs["mode_weights"] = search.weights
 
     start = time.perf_counter()
     pyro.set_rng_seed(seed)
@@ -189,12 +212,15 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
 
 @dataclass
 class _Search:
-    """How the MAP is searched for (``best_map``), and the modes the search found."""
+    """How the MAP is searched for (``best_map``), and the modes the search found; with
+    ``weighted``, the modes fitted and their weights (JSON)."""
 
     starts: int
     seed: int
     progress: bool
+    weighted: bool = False
     modes: str | None = None
+    weights: str | None = None
 
 
 def _map_init(model, data, init, search: _Search):
@@ -205,34 +231,106 @@ def _map_init(model, data, init, search: _Search):
     return _laplace.init_at(space, result[0])
 
 
+def _modes_to_fit(model, data, init, observed, hessian, search: _Search):
+    """(space, the modes worth fitting (``mixture.kept``), their Laplace log masses, gradient
+    evaluations of the search); records every mode found in ``search.modes``."""
+    space, found, evaluations = _laplace.modes(model, data, init, observed, hessian, search.progress,
+                                               search.starts, search.seed, warn=False)
+    search.modes = modes_json(space, found)
+    masses = [laplace_log_mass(u, h) for _, u, _, h in found]
+    chosen = kept(found, masses)
+    return space, [found[i] for i in chosen], [masses[i] for i in chosen], evaluations
+
+
+def _record_weights(search, space, fitted, laplace_masses, masses, counts, **extra):
+    weights = mode_weights(masses)
+    search.weights = modes_json(space, fitted, laplace_log_mass=laplace_masses, log_mass=list(masses),
+                                weight=weights.tolist(), draws=[int(c) for c in counts], **extra)
+
+
+def _weighted_laplace(model, data, init, observed, hessian, num_samples, search):
+    """Laplace approximations at every mode with a positive definite Hessian, mixed by their
+    Laplace masses."""
+    space, fitted, masses, evaluations = _modes_to_fit(model, data, init, observed, hessian, search)
+    pairs = [(m, w) for m, w in zip(fitted, masses) if w is not None] or [(fitted[0], None)]
+    gaussians = [_laplace.Gaussian(z, h, space.labels)  # none positive definite: raises, naming the fix
+                 for (z, _, _, h), _ in pairs]
+    fitted, masses = [m for m, _ in pairs], [w for _, w in pairs]
+    counts = allocate(mode_weights(masses), num_samples)
+    per_mode = [_laplace.draws(space, g, int(c), search.seed + j) for j, (g, c) in enumerate(zip(gaussians, counts))]
+    draws = {k: np.concatenate([d[k][0].numpy() for d in per_mode]) for k in per_mode[0]}
+    _record_weights(search, space, fitted, masses, masses, counts)
+    return stratified(draws, np.repeat(np.arange(len(counts)), counts), counts, 1), \
+        _laplace.stats(gaussians[0]), evaluations
+
+
 def _mcmc(model, data, kernel, num_samples, num_warmup, num_chains, seed, chains, init_fn, init,
           dense_mass, mass_matrix_from, adapt_mass, target_accept, max_tree_depth, trajectory_length,
           checkpoint, checkpoint_every, observed, progress, search):
     if not adapt_mass and mass_matrix_from is None:
         raise ValueError("adapt_mass=False keeps a seeded mass matrix: give mass_matrix_from "
                          "('laplace' or a DataTree), or leave adaptation on")
-    seed_covariance = None
-    if isinstance(mass_matrix_from, str):
-        if mass_matrix_from != "laplace":
-            raise ValueError("mass_matrix_from must be a DataTree or 'laplace', not "
-                             f"{mass_matrix_from!r}")
+    if isinstance(mass_matrix_from, str) and mass_matrix_from != "laplace":
+        raise ValueError("mass_matrix_from must be a DataTree or 'laplace', not "
+                         f"{mass_matrix_from!r}")
+    options = ({"target_accept_prob": target_accept, "max_tree_depth": max_tree_depth}
+               if kernel == "nuts" else {"trajectory_length": trajectory_length,
+                                         "target_accept_prob": target_accept})
+    options["full_mass"] = bool(dense_mass or mass_matrix_from is not None)
+    options["adapt_mass_matrix"] = bool(adapt_mass)
+    tree_covariance = (None if mass_matrix_from is None or isinstance(mass_matrix_from, str)
+                       else unconstrained_covariance(model, data, mass_matrix_from))
+
+    def chains_from(start, covariance, offset=0, folder=None):
+        spec = ChainSpec(model, data, kernel, num_warmup, num_samples, seed + offset, start, options,
+                         covariance, progress, None if folder is None else Path(folder), checkpoint_every)
+        return run_chains(spec, num_chains, chains)
+
+    if search.weighted:
+        return _weighted_chains(model, data, init_fn, observed, mass_matrix_from, tree_covariance,
+                                num_chains, num_samples, checkpoint, chains_from, search)
+    seed_covariance = tree_covariance
+    if mass_matrix_from == "laplace":
         space, gaussian, info = _laplace.laplace(model, data, init_fn, observed, "exact", progress,
                                                  search.starts, seed)
         search.modes = info["map_modes"]
         seed_covariance = gaussian.covariance
         if init == "map":
             init_fn = _laplace.init_at(space, gaussian.mean)
-    elif mass_matrix_from is not None:
-        seed_covariance = unconstrained_covariance(model, data, mass_matrix_from)
     if init == "map" and mass_matrix_from != "laplace":
         init_fn = _map_init(model, data, init_fn, search)
-    options = ({"target_accept_prob": target_accept, "max_tree_depth": max_tree_depth}
-               if kernel == "nuts" else {"trajectory_length": trajectory_length,
-                                         "target_accept_prob": target_accept})
-    options["full_mass"] = bool(dense_mass or seed_covariance is not None)
-    options["adapt_mass_matrix"] = bool(adapt_mass)
-    spec = ChainSpec(model, data, kernel, num_warmup, num_samples, seed, init_fn, options,
-                     seed_covariance, progress, None if checkpoint is None else Path(checkpoint),
-                     checkpoint_every)
-    draws, stats, grad_evals = run_chains(spec, num_chains, chains)
-    return draws, stats, grad_evals
+    return chains_from(init_fn, seed_covariance, folder=checkpoint)
+
+
+def _weighted_chains(model, data, init_fn, observed, mass_matrix_from, tree_covariance, num_chains,
+                     num_samples, checkpoint, chains_from, search):
+    """Chains at every mode worth fitting; their pooled draws split into the modes' cells and
+    mixed by the cells' modified-harmonic-mean masses (``bayespd.infer.mixture``)."""
+    space, fitted, laplace_masses, evaluations = _modes_to_fit(model, data, init_fn, observed, "exact",
+                                                               search)
+    positive = [(z, h) for (z, _, _, h), m in zip(fitted, laplace_masses) if m is not None]
+    if not positive:
+        raise NotPositiveDefiniteHessian(
+            "no mode found has a positive definite Hessian, so the modes' cells are not defined: "
+            "use modes='best', or more map_starts")
+    precisions = [h if m is not None else min(positive, key=lambda p: float((p[0] - z).norm()))[1]
+                  for (z, _, _, h), m in zip(fitted, laplace_masses)]  # on a kink: the nearest one's
+    runs = []
+    for j, ((z, *_), h) in enumerate(zip(fitted, precisions)):
+        covariance = (torch.cholesky_inverse(torch.linalg.cholesky((h + h.T) / 2))
+                      if mass_matrix_from == "laplace" else tree_covariance)
+        folder = None if checkpoint is None else Path(checkpoint) / f"mode{j}"
+        runs.append(chains_from(_laplace.init_at(space, z), covariance, j * num_chains, folder))
+        evaluations += runs[-1][2]
+    pooled = {k: np.concatenate([r[0][k] for r in runs]).reshape(-1, *runs[0][0][k].shape[2:])
+              for k in runs[0][0]}
+    stats = {k: np.concatenate([r[1][k] for r in runs]).reshape(-1) for k in runs[0][1]}
+    z_draws = space.unconstrain({k: torch.as_tensor(v) for k, v in pooled.items()}).numpy()
+    groups = np.repeat(np.arange(len(fitted)), len(stats["lp"]) // len(fitted))
+    labels, joined = merged(cells(z_draws, [m[0].numpy() for m in fitted], [h.numpy() for h in precisions]),
+                            groups, len(fitted))
+    masses = cell_log_masses(z_draws, stats["lp"], labels, len(fitted))
+    counts = allocate(mode_weights(masses), num_samples)
+    _record_weights(search, space, fitted, laplace_masses, masses, counts, cell=joined)
+    return (stratified(pooled, labels, counts, num_chains), stratified(stats, labels, counts, num_chains),
+            evaluations)

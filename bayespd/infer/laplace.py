@@ -28,7 +28,7 @@ from pyro import poutine
 from pyro.distributions import Independent, MaskedDistribution
 from pyro.distributions.torch_distribution import ExpandedDistribution
 from pyro.infer.autoguide.initialization import init_to_value
-from .mode import best_map
+from .mode import distinct_modes, modes_json
 from .space import Unconstrained
 
 HESSIANS = ("exact", "gauss-newton")
@@ -120,16 +120,24 @@ def init_at(space, z):
     return init_to_value(values={k: v.detach() for k, v in space.constrain(z.detach()).items()})
 
 
-def laplace(model, data, init, observed="y", hessian="exact", progress=True, starts=1, seed=0):
-    """Laplace approximation of ``model(**data)`` at the best of ``starts`` MAP searches
-    (``best_map``): (space, Gaussian, info dict)."""
+def modes(model, data, init, observed="y", hessian="exact", progress=True, starts=1, seed=0, warn=True):
+    """The distinct modes of ``starts`` MAP searches (``distinct_modes``; ``warn`` of close
+    ones) with their Hessians: (space, modes lowest first, gradient evaluations)."""
     if hessian not in HESSIANS:
         raise ValueError(f"hessian must be one of {HESSIANS}, not {hessian!r}")
     space = Unconstrained(model, data, init)
     hessian_fn = (partial(exact_hessian, space) if hessian == "exact"
                   else partial(gauss_newton_hessian, model, data, observed, space))
-    (z, u, g, h, evaluations), modes = best_map(space, model, data, init, starts, seed, hessian_fn, progress)
-    info = {"map_potential": u, "map_grad_norm": float(g.norm()), "map_modes": modes,
+    found, evaluations = distinct_modes(space, model, data, init, starts, seed, hessian_fn, progress, warn)
+    return space, found, evaluations
+
+
+def laplace(model, data, init, observed="y", hessian="exact", progress=True, starts=1, seed=0):
+    """Laplace approximation of ``model(**data)`` at the lowest of the ``modes``:
+    (space, Gaussian, info dict)."""
+    space, found, evaluations = modes(model, data, init, observed, hessian, progress, starts, seed)
+    z, u, g, h = found[0]
+    info = {"map_potential": u, "map_grad_norm": float(g.norm()), "map_modes": modes_json(space, found),
             "gradient_evaluations": evaluations, "hessian": hessian}
     return space, Gaussian(z, h, space.labels), info
 

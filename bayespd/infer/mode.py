@@ -139,30 +139,42 @@ def separated(space, za, ua: float, zb, ub: float) -> bool:
     return False
 
 
-def best_map(space, model, data, init, starts: int = 1, seed: int = 0, hessian_fn=None, progress=True):
+def distinct_modes(space, model, data, init, starts: int = 1, seed: int = 0, hessian_fn=None,
+                   progress=True, warn=True):
     """``find_map`` from ``space.initial`` (the point ``init`` gives ``model(**data)``) and,
     for ``starts`` > 1, from ``starts - 1`` prior points (``prior_starts``); returns (the
-    lowest search's result, the distinct modes found (``separated``) as a JSON list of
-    {potential, values}, lowest first). Warns when a second mode lies within MODE_GAP nats
-    of the lowest."""
+    distinct modes found (``separated``), lowest potential first, each a ``find_map`` result
+    (z, potential, gradient, Hessian or None); the gradient evaluations of all searches).
+    Warns (given ``warn``) when a second mode lies within MODE_GAP nats of the lowest."""
     if int(starts) != starts or starts < 1:
         raise ValueError(f"the number of MAP starts must be a positive integer, got {starts}")
     points = [None] + (prior_starts(space, model, data, init, int(starts) - 1, seed) if starts > 1 else [])
     results = sorted((find_map(space, hessian_fn, progress=progress, start=point) for point in points),
                      key=lambda r: r[1])
-    best, evaluations = results[0], sum(r[4] for r in results)
     modes = []
-    for z, u, *_ in results:
-        if all(separated(space, m, um, z, u) for m, um in modes):
-            modes.append((z, u))
-    close = [u for _, u in modes[1:] if u - best[1] < MODE_GAP]
-    if close:
+    for r in results:
+        if all(separated(space, m[0], m[1], r[0], r[1]) for m in modes):
+            modes.append(r[:4])
+    close = [m[1] for m in modes[1:] if m[1] - modes[0][1] < MODE_GAP]
+    if close and warn:
         warnings.warn(f"{len(close)} of the modes found from {len(points)} starts lie within "
-                      f"{MODE_GAP:g} nats of the lowest (potentials {best[1]:.6g}, "
+                      f"{MODE_GAP:g} nats of the lowest (potentials {modes[0][1]:.6g}, "
                       f"{', '.join(f'{u:.6g}' for u in close)}): the posterior is multimodal and a "
-                      "chain started at one mode may not visit the others; run chains from "
-                      "each (init_values), or use Laplace / SVI per mode and compare",
+                      "chain started at one mode may not visit the others; pass modes='weighted' "
+                      "to fit (chains or Laplace approximations at each mode, mixed by their "
+                      "mass), or run chains from each (init_values) and compare",
                       RuntimeWarning, stacklevel=3)
-    listed = [{"potential": u, "values": {k: v.tolist() for k, v in space.constrain(z).items()}}
-              for z, u in modes]
-    return (*best[:4], evaluations), json.dumps(listed)
+    return modes, sum(r[4] for r in results)
+
+
+def modes_json(space, modes, **extra) -> str:
+    """The modes as a JSON list of {potential, values, **per-mode extras}."""
+    return json.dumps([{"potential": m[1], "values": {k: v.tolist() for k, v in space.constrain(m[0]).items()},
+                        **{k: v[i] for k, v in extra.items()}} for i, m in enumerate(modes)])
+
+
+def best_map(space, model, data, init, starts: int = 1, seed: int = 0, hessian_fn=None, progress=True):
+    """The lowest of ``distinct_modes``: (its z, potential, gradient, Hessian, the gradient
+    evaluations of all searches), and the modes as JSON (``modes_json``)."""
+    modes, evaluations = distinct_modes(space, model, data, init, starts, seed, hessian_fn, progress)
+    return (*modes[0], evaluations), modes_json(space, modes)

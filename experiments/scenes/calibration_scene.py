@@ -54,8 +54,9 @@ METHODS = {
     "svi": {"guide": "mvn", "svi_steps": 300, "svi_lr": 0.02, "num_samples": 400, "init": "map"},
 }
 MAP_STARTS = 8  # with delta free: the median and a 7-point Latin hypercube of the prior
-FREE_DELTA = {"nuts": {"adapt_mass": False, "target_accept": 0.95, "map_starts": MAP_STARTS},
-              "laplace": {"map_starts": MAP_STARTS}, "svi": {"map_starts": MAP_STARTS}}
+FREE_DELTA = {"nuts": {"adapt_mass": False, "target_accept": 0.95, "map_starts": MAP_STARTS,
+                       "modes": "weighted"},
+              "laplace": {"map_starts": MAP_STARTS, "modes": "weighted"}, "svi": {"map_starts": MAP_STARTS}}
 
 
 def settings(method: str, free_delta: bool = False) -> dict:
