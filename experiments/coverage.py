@@ -82,7 +82,7 @@ def main(n: int, free_delta: bool, quick: bool):
         "wall_time_s": time.perf_counter() - start,
         "settings": {"replications": n, "free_delta": free_delta, "quick": quick, "level": LEVEL,
                      "methods": {m: cs.settings(m, free_delta) for m in METHODS},
-                     "particles": cs.plate().particles.n,
+                     "particles": cs.plate().particles.n, "partial_volume_rule": cs.rule(free_delta),
                      "delta_known": None if free_delta else cs.DELTA_KNOWN},
         "tolerance": {"binomial_sd_at_0.9": math.sqrt(LEVEL * (1 - LEVEL) / n),
                       "p_pass_if_exact_per_parameter": probability_in(n, LEVEL, LOW, HIGH)},

@@ -70,7 +70,7 @@ def main(n: int, free_delta: bool, quick: bool):
         "wall_time_s": wall,
         "settings": {"replications": n, "free_delta": free_delta, "quick": quick, "bins": BINS,
                      "rank_draws": num_draws, "nuts": settings, "scene": cs.fingerprint("nuts", free_delta),
-                     "particles": cs.plate().particles.n, "delta_known": None if free_delta else cs.DELTA_KNOWN},
+                     "particles": cs.plate().particles.n, "partial_volume_rule": cs.rule(free_delta), "delta_known": None if free_delta else cs.DELTA_KNOWN},
         "targets": targets,
         "power": {f"overconfident_sd_x{c}": chi2_power_overconfident(len(ok), BINS, c, ALPHA)
                   for c in (0.5, 0.7, 0.8)},

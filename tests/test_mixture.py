@@ -53,7 +53,9 @@ def test_allocation_and_stratified_draws():
     pooled = {"x": np.arange(20.0)}
     labels = np.array([0] * 12 + [1] * 8)
     out = stratified(pooled, labels, [2, 1], num_chains=2)["x"]
-    assert out.tolist() == [[0, 7, 12], [4, 11, 19]]
+    assert out.tolist() == [[0, 4, 12], [7, 11, 19]]
+    one = stratified(pooled, np.zeros(20, int), [10], num_chains=2)["x"]
+    assert np.array_equal(one, pooled["x"].reshape(2, 10))  # one cell: the chains as they were
 
 
 def test_each_draw_belongs_to_the_most_probable_mode():

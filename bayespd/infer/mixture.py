@@ -142,7 +142,8 @@ def cell_log_masses(z, lp, labels, n_cells: int) -> list[float]:
 def stratified(arrays: dict, labels, counts, num_chains: int) -> dict:
     """``(num_chains, sum(counts), ...)`` arrays from pooled ``arrays`` (n, ...) whose rows
     belong to the cells ``labels``: ``num_chains x counts[m]`` rows of cell m evenly spaced
-    in pooled order, dealt to the chains, cell after cell."""
+    in pooled order (chain after chain), split into one contiguous block per output chain,
+    cell after cell. With one cell the chains come back as they were."""
     out = {}
     for k, v in arrays.items():
         parts = []
@@ -150,6 +151,6 @@ def stratified(arrays: dict, labels, counts, num_chains: int) -> dict:
             rows = np.flatnonzero(labels == m)
             if c:
                 index = rows[np.round(np.linspace(0, len(rows) - 1, c * num_chains)).astype(int)]
-                parts.append(v[index].reshape(c, num_chains, *v.shape[1:]).swapaxes(0, 1))
+                parts.append(v[index].reshape(num_chains, c, *v.shape[1:]))
         out[k] = np.concatenate(parts, axis=1)
     return out
