@@ -16,8 +16,10 @@ modes lie up to 120 nats apart, and one search from the prior median ends in the
 often enough to fail SBC (40 of 100 NUTS intervals missed delta with one search). NUTS and
 Laplace also fit every mode found with at least 1e-3 of the largest Laplace mass and mix
 them by their mass (``modes="weighted"``, ``bayespd.infer.mixture``): a chain need not cross
-to a second basin a few nats away, which held the delta coverage at 0.82 with the best
-mode alone.
+to a second basin a few nats away. And with delta free the partial volumes use the smooth
+(C1) ramp (FREE_DELTA_RULE): the linear ramp's kinks put cusps in the potential along delta
+(``experiments/delta_ridges.py``) that chains cross rarely; with it, delta coverage stayed at
+0.82 whether the best mode alone or every mode was fitted.
 
 Replication ``i`` draws (K, G, delta, sigma) and then y from the model itself (seed
 ``1000 + i``): the prior predictive, so the data come from the same model that is calibrated
