@@ -69,8 +69,8 @@ def _scene_layout(scene, data, observed, dims, coords, constant_data):
 def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, num_chains=4,
         seed=0, chains="auto", init_values=None, init="median", dense_mass=False,
         mass_matrix_from=None, adapt_mass=True, target_accept=0.8, max_tree_depth=10,
-        trajectory_length=None, map_starts=1, modes="best", guide="mvn", svi_steps=2000, svi_lr=0.02, svi_rank=None,
-        svi_particles=1, hessian="exact", checkpoint=None, checkpoint_every=50, scene=None,
+        trajectory_length=None, map_starts=1, modes="best", guide="mvn", svi_steps=2000, svi_lr=0.02,
+        svi_rank=None, svi_particles=1, hessian="exact", checkpoint=None, checkpoint_every=50, scene=None,
         constant_data=None, progress=True, observed="y", dims=None, coords=None):
     """Posterior of ``model(**data)`` as an ArviZ-style ``xarray.DataTree``.
 
@@ -83,12 +83,13 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
     hypercube of the prior (``bayespd.infer.mode``; a warning when two modes lie within 3
     nats; the modes found go to the ``map_modes`` attribute). Laplace uses the same search.
     ``modes="weighted"`` (NUTS, HMC, Laplace; needs ``map_starts`` > 1) fits every mode
-    found whose Laplace mass is within a factor 1000 of the largest, NUTS/HMC with
-    ``num_chains`` chains started there (seeds ``seed + j num_chains`` for the j-th mode, the
-    mode's own Laplace covariance as metric under ``mass_matrix_from="laplace"``), and mixes
-    the fits by each mode's estimated mass (``bayespd.infer.mixture``: modified harmonic mean
-    of the chains' draws; Laplace's mass for Laplace): every chain of the result holds each
-    mode's share of ``num_samples``. The modes, masses and weights go to ``mode_weights``.
+    found whose Laplace mass is within a factor 1000 of the largest (``bayespd.infer.mixture``):
+    NUTS/HMC run ``num_chains`` chains from each (seeds ``seed + j num_chains`` for the j-th
+    mode; the mode's own Laplace covariance as metric under ``mass_matrix_from="laplace"``),
+    split the pooled draws into one cell per mode (joined where chains cross) and mix the
+    cells by their modified-harmonic-mean masses; Laplace mixes the modes' Gaussians by their
+    Laplace masses. Every chain of the result holds each cell's share of ``num_samples``; the
+    modes, masses and weights go to the ``mode_weights`` attribute.
 
     * ``"nuts"`` / ``"hmc"``: ``num_chains`` chains of ``num_warmup`` + ``num_samples``
       (see ``bayespd.infer.mcmc`` for seeds, ``chains="auto" | "sequential" | "processes"``
@@ -257,7 +258,8 @@ def _weighted_laplace(model, data, init, observed, hessian, num_samples, search)
                  for (z, _, _, h), _ in pairs]
     fitted, masses = [m for m, _ in pairs], [w for _, w in pairs]
     counts = allocate(mode_weights(masses), num_samples)
-    per_mode = [_laplace.draws(space, g, int(c), search.seed + j) for j, (g, c) in enumerate(zip(gaussians, counts))]
+    per_mode = [_laplace.draws(space, g, int(c), search.seed + j)
+                for j, (g, c) in enumerate(zip(gaussians, counts))]
     draws = {k: np.concatenate([d[k][0].numpy() for d in per_mode]) for k in per_mode[0]}
     _record_weights(search, space, fitted, masses, masses, counts)
     return stratified(draws, np.repeat(np.arange(len(counts)), counts), counts, 1), \
