@@ -125,9 +125,27 @@ def test_weighted_laplace_mixes_the_modes_by_their_laplace_mass():
 
 def test_weighted_modes_refused_where_they_cannot_work():
     model = partial(two_basins, pull_sd=2.0)
-    for method, extra in (("svi", {"init": "map", "map_starts": 8}), ("nuts", {"init": "map"}),
+    for method, extra in (("svi", {"init": "map"}), ("nuts", {"init": "map"}),
                           ("hmc", {"init": "median"}), ("laplace", {})):
         with pytest.raises(ValueError, match="map_starts >= 2"):
             fit(model, DATA, method, modes="weighted", progress=False, **extra)
     with pytest.raises(ValueError, match="modes must be one of"):
         fit(model, DATA, "laplace", modes="all", progress=False)
+
+
+def test_weighted_svi_mixes_the_guides_by_their_evidence():
+    """A full-rank Gaussian guide from each mode, weighted by its importance-sampling
+    evidence: the share of draws at +2 is the exact mass of x > 0 within 0.05 (each basin is
+    near Gaussian, so the per-mode evidence is nearly exact; 400 draws give a Monte-Carlo
+    error under 1 % and 1/400 of allocation), where modes='best' puts every draw there."""
+    model = partial(two_basins, pull_sd=2.0)
+    options = dict(num_samples=400, svi_steps=400, init="map", map_starts=8, init_values=START,
+                   progress=False, seed=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # the modes lie within 3 nats
+        best = fit(model, DATA, "svi", **options)
+    assert float((best["posterior"]["x"] > 0).mean()) == 1.0
+    weighted = fit(model, DATA, "svi", modes="weighted", **options)
+    share = float((weighted["posterior"]["x"] > 0).mean())
+    assert abs(share - upper_basin_weight(2.0)) < 0.05, (share, upper_basin_weight(2.0))
+    assert weighted["sample_stats"]["svi_loss"].shape[-2:] == (2, 400)

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pyro
 import torch
+import xarray as xr
 from pyro.infer.autoguide.initialization import init_to_median, init_to_value
 
 from . import laplace as _laplace
@@ -82,13 +83,14 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
     ``map_starts`` > 1, at the lowest of that many searches, the others from a Latin
     hypercube of the prior (``bayespd.infer.mode``; a warning when two modes lie within 3
     nats; the modes found go to the ``map_modes`` attribute). Laplace uses the same search.
-    ``modes="weighted"`` (NUTS, HMC, Laplace; needs ``map_starts`` > 1) fits every mode
+    ``modes="weighted"`` (every method; needs ``map_starts`` > 1) fits every mode
     found whose Laplace mass is within a factor 1000 of the largest (``bayespd.infer.mixture``):
     NUTS/HMC run ``num_chains`` chains from each (seeds ``seed + j num_chains`` for the j-th
     mode; the mode's own Laplace covariance as metric under ``mass_matrix_from="laplace"``),
     split the pooled draws into one cell per mode (joined where chains cross) and mix the
     cells by their modified-harmonic-mean masses; Laplace mixes the modes' Gaussians by their
-    Laplace masses. Every chain of the result holds each cell's share of ``num_samples``; the
+    Laplace masses, SVI the guides fitted from each mode by their importance-sampling
+    evidence (``bayespd.infer.svi.log_evidence``). Every chain of the result holds each cell's share of ``num_samples``; the
     modes, masses and weights go to the ``mode_weights`` attribute.
 
     * ``"nuts"`` / ``"hmc"``: ``num_chains`` chains of ``num_warmup`` + ``num_samples``
@@ -130,10 +132,9 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
         raise ValueError("map_starts searches for the MAP to start from: pass init='map' too")
     if modes not in MODES:
         raise ValueError(f"modes must be one of {MODES}, not {modes!r}")
-    if modes == "weighted" and (method == "svi" or map_starts < 2 or (method != "laplace" and init != "map")):
+    if modes == "weighted" and (map_starts < 2 or (method != "laplace" and init != "map")):
         raise ValueError("modes='weighted' fits every mode that several MAP searches find: use it "
-                         "with method 'nuts', 'hmc' or 'laplace', map_starts >= 2 (e.g. 8) and, "
-                         "for MCMC, init='map'")
+                         "with map_starts >= 2 (e.g. 8) and, for NUTS, HMC and SVI, init='map'")
     check_data(data, observed)
     start_init = _initial(init_values)
     trace = init_trace(model, data, start_init)
@@ -158,11 +159,16 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
         settings.update({"nuts": {"target_accept": target_accept, "max_tree_depth": max_tree_depth},
                          "hmc": {"trajectory_length": trajectory_length}}[method])
     elif method == "svi":
-        if init == "map":
-            start_init = _map_init(model, data, start_init, search)
-        posterior, stats = run_svi(model, data, guide, num_samples, seed, svi_steps, svi_lr,
-                                   start_init, progress, svi_rank, svi_particles)
-        grad_evals = svi_steps * svi_particles
+        if search.weighted:
+            posterior, stats, grad_evals = _weighted_svi(model, data, start_init, observed, num_samples, seed,
+                                                         guide, svi_steps, svi_lr, progress, svi_rank,
+                                                         svi_particles, search)
+        else:
+            if init == "map":
+                start_init = _map_init(model, data, start_init, search)
+            posterior, stats = run_svi(model, data, guide, num_samples, seed, svi_steps, svi_lr,
+                                       start_init, progress, svi_rank, svi_particles)
+            grad_evals = svi_steps * svi_particles
         settings.update(guide=guide, svi_steps=svi_steps, svi_lr=svi_lr, svi_rank=svi_rank,
                         svi_particles=svi_particles)
     elif search.weighted:
@@ -264,6 +270,21 @@ def _weighted_laplace(model, data, init, observed, hessian, num_samples, search)
     _record_weights(search, space, fitted, masses, masses, counts)
     return stratified(draws, np.repeat(np.arange(len(counts)), counts), counts, 1), \
         _laplace.stats(gaussians[0]), evaluations
+
+
+def _weighted_svi(model, data, init, observed, num_samples, seed, guide, steps, lr, progress, rank,
+                  particles, search):
+    """A guide fitted from every mode worth fitting, mixed by their evidence estimates."""
+    space, fitted, laplace_masses, evaluations = _modes_to_fit(model, data, init, observed, "exact", search)
+    fits = [run_svi(model, data, guide, num_samples, seed + j, steps, lr, _laplace.init_at(space, z),
+                    progress, rank, particles, evidence=True) for j, (z, *_) in enumerate(fitted)]
+    masses = [f[2] for f in fits]
+    counts = allocate(mode_weights(masses), num_samples)
+    draws = {k: np.concatenate([f[0][k][0, :c].numpy() for f, c in zip(fits, counts)]) for k in fits[0][0]}
+    _record_weights(search, space, fitted, laplace_masses, masses, counts)
+    stats = xr.concat([f[1] for f in fits], dim="svi_mode")
+    return (stratified(draws, np.repeat(np.arange(len(counts)), counts), counts, 1), stats,
+            evaluations + steps * particles * len(fitted))
 
 
 def _mcmc(model, data, kernel, num_samples, num_warmup, num_chains, seed, chains, init_fn, init,

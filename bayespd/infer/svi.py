@@ -8,15 +8,19 @@ starts where the Gaussian guides start). Every guide starts at the initial value
 or ``init_values``).
 """
 
+import math
+
 import numpy as np
 import pyro
 import torch
 import xarray as xr
 from pyro.distributions.transforms import ComposeTransformModule, affine_autoregressive
+from pyro import poutine
 from pyro.infer import SVI, Trace_ELBO
 from pyro.infer.autoguide import (AutoContinuous, AutoLowRankMultivariateNormal,
                                   AutoMultivariateNormal, AutoNormal, AutoNormalizingFlow)
 from pyro.optim import ClippedAdam
+from scipy.special import logsumexp
 from torch.distributions.transforms import AffineTransform
 from tqdm.auto import tqdm
 
@@ -53,11 +57,12 @@ def make_guide(model, guide, init, rank=None):
 
 
 def run_svi(model, data, guide, num_samples, seed, steps, lr, init, progress, rank=None,
-            particles=1):
+            particles=1, evidence=False):
     """Fit ``guide`` by ``steps`` of ClippedAdam (learning rate decaying geometrically from
     ``lr`` to ``lr / 10``: a constant rate leaves the single-sample gradient noise in the
     result) on the ELBO with ``particles`` samples per step; return ``num_samples`` guide
-    draws as one chain ``{site: (1, num_samples, ...)}`` and the loss trace."""
+    draws as one chain ``{site: (1, num_samples, ...)}`` and the loss trace, and with
+    ``evidence`` also ``log_evidence`` from ``num_samples`` further guide draws."""
     pyro.set_rng_seed(seed)
     with pyro.get_param_store().scope():
         q = make_guide(model, guide, init, rank)
@@ -71,5 +76,18 @@ def run_svi(model, data, guide, num_samples, seed, steps, lr, init, progress, ra
                     bar.set_postfix(loss=f"{losses[-1]:.4g}")
         with torch.no_grad():
             draws = [q(**data) for _ in range(num_samples)]
+            log_z = log_evidence(model, q, data, num_samples) if evidence else None
     posterior = {k: torch.stack([d[k] for d in draws])[None] for k in draws[0]}
-    return posterior, xr.Dataset({"svi_loss": ("svi_step", np.array(losses))})
+    stats = xr.Dataset({"svi_loss": ("svi_step", np.array(losses))})
+    return (posterior, stats) if not evidence else (posterior, stats, log_z)
+
+
+def log_evidence(model, guide, data, n: int) -> float:
+    """Importance-sampling estimate of log p(y) with ``guide`` as proposal:
+    log mean_i exp(log p(y, theta_i) - log q(theta_i)) over n guide draws."""
+    log_w = []
+    for _ in range(n):
+        g = poutine.trace(guide).get_trace(**data)
+        m = poutine.trace(poutine.replay(model, trace=g)).get_trace(**data)
+        log_w.append(float(m.log_prob_sum() - g.log_prob_sum()))
+    return float(logsumexp(log_w) - math.log(n))

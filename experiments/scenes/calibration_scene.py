@@ -13,9 +13,9 @@ through warmup and target_accept 0.95 (benchmarks/README.md, inference.py: 2.8x 
 gradients per effective draw, no divergences at the kinks), and, for every method, the MAP
 taken as the best of 8 searches (``FREE_DELTA``): the kinks split delta into basins whose
 modes lie up to 120 nats apart, and one search from the prior median ends in the wrong basin
-often enough to fail SBC (40 of 100 NUTS intervals missed delta with one search). NUTS and
-Laplace also fit every mode found with at least 1e-3 of the largest Laplace mass and mix
-them by their mass (``modes="weighted"``, ``bayespd.infer.mixture``): a chain need not cross
+often enough to fail SBC (40 of 100 NUTS intervals missed delta with one search). Every method
+also fits every mode found with at least 1e-3 of the largest Laplace mass and mixes them by
+their mass (``modes="weighted"``, ``bayespd.infer.mixture``): a chain need not cross
 to a second basin a few nats away. And with delta free the partial volumes use the smooth
 (C1) ramp (FREE_DELTA_RULE): the linear ramp's kinks put cusps in the potential along delta
 (``experiments/delta_ridges.py``) that chains cross rarely; with it, delta coverage stayed at
@@ -62,7 +62,8 @@ METHODS = {
 MAP_STARTS = 8  # with delta free: the median and a 7-point Latin hypercube of the prior
 FREE_DELTA = {"nuts": {"adapt_mass": False, "target_accept": 0.95, "map_starts": MAP_STARTS,
                        "modes": "weighted"},
-              "laplace": {"map_starts": MAP_STARTS, "modes": "weighted"}, "svi": {"map_starts": MAP_STARTS}}
+              "laplace": {"map_starts": MAP_STARTS, "modes": "weighted"},
+              "svi": {"map_starts": MAP_STARTS, "modes": "weighted"}}
 
 
 FREE_DELTA_RULE = "smooth"  # C1 partial volumes: the linear ramp's kinks make ridges in delta
