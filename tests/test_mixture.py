@@ -149,3 +149,17 @@ def test_weighted_svi_mixes_the_guides_by_their_evidence():
     share = float((weighted["posterior"]["x"] > 0).mean())
     assert abs(share - upper_basin_weight(2.0)) < 0.05, (share, upper_basin_weight(2.0))
     assert weighted["sample_stats"]["svi_loss"].shape[-2:] == (2, 400)
+
+
+def test_one_mode_weighted_is_the_plain_fit_bit_for_bit():
+    """A unimodal posterior (the linear Gaussian model): every search ends at one mode, and
+    the weighted fit's chains are the plain fit's, draw for draw."""
+    from test_laplace import Y, linear
+
+    start = {"theta": [0.5, -1.0, 2.0], "s": 1.0}  # not Pyro's median of random prior draws
+    options = dict(num_samples=50, num_warmup=50, num_chains=2, chains="sequential", init="map",
+                   map_starts=3, mass_matrix_from="laplace", progress=False, seed=4, init_values=start)
+    plain = fit(linear, {"y": Y}, "nuts", **options)
+    weighted = fit(linear, {"y": Y}, "nuts", modes="weighted", **options)
+    assert len(json.loads(weighted.attrs["mode_weights"])) == 1
+    assert np.array_equal(plain["posterior"]["theta"].values, weighted["posterior"]["theta"].values)
