@@ -14,8 +14,8 @@ import numpy as np
 import pyro
 import torch
 import xarray as xr
-from pyro.distributions.transforms import ComposeTransformModule, affine_autoregressive
 from pyro import poutine
+from pyro.distributions.transforms import ComposeTransformModule, affine_autoregressive
 from pyro.infer import SVI, Trace_ELBO
 from pyro.infer.autoguide import (AutoContinuous, AutoLowRankMultivariateNormal,
                                   AutoMultivariateNormal, AutoNormal, AutoNormalizingFlow)

@@ -64,8 +64,6 @@ FREE_DELTA = {"nuts": {"adapt_mass": False, "target_accept": 0.95, "map_starts":
                        "modes": "weighted"},
               "laplace": {"map_starts": MAP_STARTS, "modes": "weighted"},
               "svi": {"map_starts": MAP_STARTS, "modes": "weighted"}}
-
-
 FREE_DELTA_RULE = "smooth"  # C1 partial volumes: the linear ramp's kinks make ridges in delta
 
 
