@@ -58,7 +58,8 @@ def shape(u: np.ndarray, deltas: np.ndarray, truth: float) -> dict:
     """Local minima of the profile, and its local maxima that sit on a kink."""
     minima = np.flatnonzero((u[1:-1] < u[:-2]) & (u[1:-1] < u[2:])) + 1
     maxima = np.flatnonzero((u[1:-1] > u[:-2]) & (u[1:-1] > u[2:])) + 1
-    on_kink = [float(deltas[i]) for i in maxima if np.min(np.abs(kinks() - deltas[i])) <= 1.5 * GRID]
+    at = kinks()
+    on_kink = [float(deltas[i]) for i in maxima if np.min(np.abs(at - deltas[i])) <= 1.5 * GRID]
     return {"truth": truth, "local_minima": len(minima), "minima_delta": deltas[minima].tolist(),
             "maxima_on_kinks": on_kink}
 

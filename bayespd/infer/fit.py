@@ -17,7 +17,7 @@ from .laplace import NotPositiveDefiniteHessian
 from .checks import check_data, check_observed_shape, check_priors
 from .datatree import build_tree
 from .mixture import (allocate, cell_log_masses, cells, kept, laplace_log_mass, merged, mode_weights,
-                      stratified)
+                      one_chain, stratified)
 from .mode import best_map, modes_json
 from .mcmc import ChainSpec, run_chains
 from .replay import replay
@@ -90,8 +90,8 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
     split the pooled draws into one cell per mode (joined where chains cross) and mix the
     cells by their modified-harmonic-mean masses; Laplace mixes the modes' Gaussians by their
     Laplace masses, SVI the guides fitted from each mode by their importance-sampling
-    evidence (``bayespd.infer.svi.log_evidence``). Every chain of the result holds each cell's share of ``num_samples``; the
-    modes, masses and weights go to the ``mode_weights`` attribute.
+    evidence (``bayespd.infer.svi.log_evidence``). Every chain of the result holds each
+    cell's share of ``num_samples``; the modes, masses and weights go to ``mode_weights``.
 
     * ``"nuts"`` / ``"hmc"``: ``num_chains`` chains of ``num_warmup`` + ``num_samples``
       (see ``bayespd.infer.mcmc`` for seeds, ``chains="auto" | "sequential" | "processes"``
@@ -266,10 +266,8 @@ def _weighted_laplace(model, data, init, observed, hessian, num_samples, search)
     counts = allocate(mode_weights(masses), num_samples)
     per_mode = [_laplace.draws(space, g, int(c), search.seed + j)
                 for j, (g, c) in enumerate(zip(gaussians, counts))]
-    draws = {k: np.concatenate([d[k][0].numpy() for d in per_mode]) for k in per_mode[0]}
     _record_weights(search, space, fitted, masses, masses, counts)
-    return stratified(draws, np.repeat(np.arange(len(counts)), counts), counts, 1), \
-        _laplace.stats(gaussians[0]), evaluations
+    return one_chain(per_mode, counts), _laplace.stats(gaussians[0]), evaluations
 
 
 def _weighted_svi(model, data, init, observed, num_samples, seed, guide, steps, lr, progress, rank,
@@ -280,11 +278,9 @@ def _weighted_svi(model, data, init, observed, num_samples, seed, guide, steps, 
                     progress, rank, particles, evidence=True) for j, (z, *_) in enumerate(fitted)]
     masses = [f[2] for f in fits]
     counts = allocate(mode_weights(masses), num_samples)
-    draws = {k: np.concatenate([f[0][k][0, :c].numpy() for f, c in zip(fits, counts)]) for k in fits[0][0]}
     _record_weights(search, space, fitted, laplace_masses, masses, counts)
     stats = xr.concat([f[1] for f in fits], dim="svi_mode")
-    return (stratified(draws, np.repeat(np.arange(len(counts)), counts), counts, 1), stats,
-            evaluations + steps * particles * len(fitted))
+    return one_chain([f[0] for f in fits], counts), stats, evaluations + steps * particles * len(fitted)
 
 
 def _mcmc(model, data, kernel, num_samples, num_warmup, num_chains, seed, chains, init_fn, init,
@@ -340,8 +336,8 @@ def _weighted_chains(model, data, init_fn, observed, mass_matrix_from, tree_cova
                   for (z, _, _, h), m in zip(fitted, laplace_masses)]  # on a kink: the nearest one's
     runs = []
     for j, ((z, *_), h) in enumerate(zip(fitted, precisions)):
-        covariance = (torch.cholesky_inverse(torch.linalg.cholesky((h + h.T) / 2))
-                      if mass_matrix_from == "laplace" else tree_covariance)
+        covariance = (_laplace.Gaussian(z, h, space.labels).covariance if mass_matrix_from == "laplace"
+                      else tree_covariance)
         folder = None if checkpoint is None else Path(checkpoint) / f"mode{j}"
         runs.append(chains_from(_laplace.init_at(space, z), covariance, j * num_chains, folder))
         evaluations += runs[-1][2]

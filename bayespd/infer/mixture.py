@@ -20,7 +20,8 @@ sum_m w_m p(z | cell m) with w_m = Z_m / sum Z:
   (renormalised by ``level``), so the ratio stays bounded where the chains have been.
 
 Draws are ``allocate``d to the cells in proportion to w (largest remainders) and each
-cell's share taken evenly spaced from the draws in it (``stratified``): every output chain
+cell's share taken evenly spaced from the chains' draws in it (``stratified``; independent
+Laplace or guide draws are simply concatenated, ``one_chain``): every output chain
 holds the same mixture, so the result is read like any other fit.
 """
 
@@ -93,6 +94,13 @@ def allocate(weights, n: int) -> np.ndarray:
     counts = np.floor(exact).astype(int)
     counts[np.argsort(counts - exact, kind="stable")[: n - counts.sum()]] += 1
     return counts
+
+
+def one_chain(per_mode: list[dict], counts) -> dict:
+    """Independent draws of each mode (``{site: (1, n, ...)}``, e.g. Laplace or guide draws):
+    the first ``counts[m]`` of mode m, as one chain ``(1, sum(counts), ...)``."""
+    return {k: np.concatenate([np.asarray(d[k])[:, :c] for d, c in zip(per_mode, counts)], axis=1)
+            for k in per_mode[0]}
 
 
 def cells(z, centres, precisions) -> np.ndarray:
