@@ -179,6 +179,8 @@ def _tikhonov(module, scene, data, args):
 def _print_posterior(tree) -> None:
     import numpy as np
 
+    from bayespd.infer import modes
+
     post = tree["posterior"]
     print(f"{'parameter':>12} {'mean':>12} {'sd':>12} {'5 %':>12} {'95 %':>12}")
     for k in sorted(post.data_vars):
@@ -187,6 +189,9 @@ def _print_posterior(tree) -> None:
             continue
         lo, hi = np.quantile(v, [0.05, 0.95])
         print(f"{k:>12} {v.mean():12.5g} {v.std():12.5g} {lo:12.5g} {hi:12.5g}")
+    if (table := modes(tree, mixed=True)) is not None:
+        print(f"a mixture of {len(table)} modes (fit(..., modes='weighted')):")
+        print(table.drop(columns=["laplace_log_mass", "log_mass"], errors="ignore").to_string())
 
 
 def predict(args) -> int:

@@ -106,6 +106,11 @@ class Scene:
             return self._assembly.factorize(m._terms(p, p["delta"]), "pcg", rtol=self.rtol,
                                             precondition_rows=self._precondition_rows)
 
+    def factor(self, params: dict):
+        """The factorised free-dof operator at ``params`` (no autograd): ``.solve(b)`` for numpy
+        b (n_free,) or (n_free, k), so several dependent solves share one factorisation."""
+        return self._factor(self._params(params))
+
     def free_load(self, params: dict) -> torch.Tensor:
         """The right-hand side f_f - K_fc u_c on the free dofs (differentiable)."""
         p = self._params(params)

@@ -14,6 +14,7 @@ from torch.distributions import constraints
 
 import bayespd as bp
 from bayespd.infer import NotPositiveDefiniteHessian, ScaledBeta, fit
+from bayespd.infer import modes as modes_table
 from bayespd.infer.laplace import exact_hessian
 from bayespd.infer.space import Unconstrained
 from models.elastic_plate import elastic_plate
@@ -203,6 +204,8 @@ def test_map_from_several_starts_finds_the_lower_basin(pull_sd, close):
     modes = json.loads(eight.attrs["map_modes"])
     assert float(eight["posterior"]["x"].mean()) > 1.5
     assert [round(m["values"]["x"]) for m in modes] == [2, -2]
+    table = modes_table(eight)  # the same list for the user; no weights: one mode fitted
+    assert table["x"].round().tolist() == [2, -2] and "weight" not in table
     gap = modes[1]["potential"] - modes[0]["potential"]
     assert abs(gap - (8 / pull_sd**2 - 0.5)) < 0.5  # the leading-order gap of the docstring
     assert any("multimodal" in str(w.message) for w in caught) == close

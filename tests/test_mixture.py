@@ -11,7 +11,8 @@ import torch
 from scipy.integrate import quad
 from scipy.stats import multivariate_normal, norm
 
-from bayespd.infer import fit
+from bayespd.cli import main
+from bayespd.infer import fit, save, summary
 from bayespd.infer.mixture import allocate, cells, harmonic_log_mass, kept, laplace_log_mass, merged, stratified
 from test_laplace import two_basins
 
@@ -105,9 +106,10 @@ def test_weighted_nuts_puts_each_basin_at_its_mass(pull_sd):
     assert weighted["posterior"]["x"].shape == (2, 300)
 
 
-def test_weighted_laplace_mixes_the_modes_by_their_laplace_mass():
+def test_weighted_laplace_mixes_the_modes_by_their_laplace_mass(tmp_path, capsys):
     """The share of draws at each mode is the Laplace-mass weight, computed here from the
-    numpy potential (Hessian by central differences), to the allocation's 1/400."""
+    numpy potential (Hessian by central differences), to the allocation's 1/400; summary()
+    and `bayespd summary` (after a NetCDF round trip) list the modes with their weights."""
     model = partial(two_basins, pull_sd=2.0)
     tree = fit(model, DATA, "laplace", num_samples=400, map_starts=8, modes="weighted",
                init_values=START, progress=False)
@@ -121,6 +123,15 @@ def test_weighted_laplace_mixes_the_modes_by_their_laplace_mass():
     weight = 1 / (1 + math.exp(masses[1] - masses[0]))
     assert float((tree["posterior"]["x"] > 0).mean()) == pytest.approx(weight, abs=1 / 400 + 1e-3)
     assert record[0]["weight"] == pytest.approx(weight, abs=1e-5)
+    table = summary(tree).attrs["modes"]  # the same record, one row per mode, for the user
+    assert table["weight"].tolist() == [m["weight"] for m in record]
+    assert table["x"].tolist() == [m["values"]["x"] for m in record]
+    assert table["draws"].sum() == 400
+    assert sorted(np.sign(table["x"])) == [-1, 1]
+    save(tree, tmp_path / "posterior.nc")
+    assert main(["summary", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "a mixture of 2 modes" in out and f"{record[0]['weight']:.6f}"[:6] in out
 
 
 def test_weighted_modes_refused_where_they_cannot_work():

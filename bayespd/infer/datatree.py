@@ -76,13 +76,35 @@ def summary(tree: xr.DataTree, var_names=None):
     thresholds of Vehtari et al. (2021) that ArviZ and Stan use: r_hat > 1.01, bulk or tail
     ESS < 100 per chain, any divergent transition, E-BFMI < 0.3 in some chain, and draws that
     hit the maximum tree depth. SVI and Laplace draws are independent: only divergences (none)
-    would apply, so they get no warnings.
+    would apply, so they get no warnings. A fit that mixed several modes
+    (``fit(..., modes="weighted")``) carries their table (:func:`modes`) in
+    ``df.attrs["modes"]``.
     """
     df = az.summary(to_inference_data(tree), var_names=var_names, hdi_prob=0.9)
+    if (table := modes(tree, mixed=True)) is not None:
+        df.attrs["modes"] = table
     if tree.attrs.get("method") in ("nuts", "hmc"):
         for message in _diagnostic_failures(tree, df):
             warnings.warn(message, UserWarning, stacklevel=2)
     return df
+
+
+def modes(tree: xr.DataTree, mixed: bool = False):
+    """The modes the MAP search found, one row each (``pandas.DataFrame``): potential, the
+    scalar parameters' values and, for ``fit(..., modes="weighted")``, each mode's Laplace log
+    mass, the log mass it was weighted by (``mixture``), its weight and number of draws; None
+    for a fit that records no modes, and with ``mixed`` unless its draws mix several modes."""
+    import pandas as pd
+
+    text = tree.attrs.get("mode_weights", tree.attrs.get("map_modes"))
+    if text is None:
+        return None
+    rows = []
+    for mode in json.loads(text):
+        values = {k: v for k, v in mode.pop("values").items() if np.ndim(v) == 0}
+        rows.append({**mode, **values})
+    table = pd.DataFrame(rows).rename_axis("mode")
+    return None if mixed and ("weight" not in table or len(table) < 2) else table
 
 
 def _diagnostic_failures(tree, df):

@@ -295,6 +295,28 @@ def optimise(work: VirtualWork, u, init: dict, *, observed=None, bounds: dict | 
                      "gauss_newton", {"status": int(res.status), "message": str(res.message)})
 
 
+def _sensitivities(scene, params: dict):
+    """(the factor of K(params) on the free dofs, -d u/d(a_s, a_d) = K^-1 K_k u (n_free, 2))."""
+    c = scene.constraints
+    p = {k: torch.as_tensor(v) for k, v in params.items()}
+    with torch.no_grad():
+        factor = scene.factor(p)
+        u = c.expand(torch.as_tensor(factor.solve(scene.free_load(p).numpy())))
+        Ps, Pd, _ = constant_parts(scene.material, {k: v for k, v in p.items() if k not in ("K", "G")}, u[None])
+        Kk = torch.stack([c.free(Ps[0]), c.free(Pd[0])], 1).numpy()  # K_s u, K_d u on the free dofs
+    return factor, factor.solve(Kk)
+
+
+def moduli_sensitivities(scene, params: dict) -> np.ndarray:
+    """d u/d(K, G) on the free dofs (n_free, 2) of the homogeneous LPS scene, exact: d u/d a_k
+    = -K^-1 K_k u and the chain rule through :func:`pd_constants`; one factorisation (e.g.
+    the Fisher information J^T J / Sigma^2 of iid noise on the displacements)."""
+    _, S = _sensitivities(scene, params)
+    moduli = torch.tensor([float(params["K"]), float(params["G"])])
+    da = torch.autograd.functional.jacobian(lambda m: torch.stack(pd_constants(scene.material, m[0], m[1])), moduli)
+    return -S @ da.numpy()
+
+
 def noise_optimal_fields(scene, params: dict) -> list:
     """The two virtual fields w_k = K^-1 K^-1 K_k u (k = s, d; K = K(params) on the free
     dofs, K_k = dK/da_k, u = K^-1 f) for which the VFM equations w_k^T (K(a) y - f) = 0 are
@@ -303,13 +325,8 @@ def noise_optimal_fields(scene, params: dict) -> list:
     the closed form with them is a one-step estimator, efficient as the noise vanishes;
     remade at each new estimate it converges to the maximum-likelihood estimate under iid
     Gaussian noise at the free dofs (the noise-optimised special fields of Avril, Grédiac
-    and Pierron 2004, for the PD model). Costs three solves with one factorisation each; the
+    and Pierron 2004, for the PD model). Costs one factorisation and three solves; the
     fields vanish on the constrained dofs."""
-    c = scene.constraints
-    p = {k: torch.as_tensor(v) for k, v in params.items()}
-    with torch.no_grad():
-        u = scene.solve(p)
-        Ps, Pd, _ = constant_parts(scene.material, {k: v for k, v in p.items() if k not in ("K", "G")}, u[None])
-        Kk = torch.stack([c.free(Ps[0]), c.free(Pd[0])], 1)  # K_s u, K_d u on the free dofs
-        w = scene.solve_free(p, scene.solve_free(p, Kk))
-    return [lambda x, w=c.embed(w[:, k]).numpy(): w for k in range(2)]
+    factor, S = _sensitivities(scene, params)
+    w = torch.as_tensor(factor.solve(S))
+    return [lambda x, w=scene.constraints.embed(w[:, k]).numpy(): w for k in range(2)]
