@@ -21,8 +21,11 @@ the particle's energy fades continuously to zero with its last bonds.
 Total potential energy (seed 002 eq 3): V(u) = sum of bond energies - p . u + (eps/2) u . u.
 For small u both forces equal the linearised -K u up to O(|u|^2).
 
-The force is written by hand (gather, per-bond scalar, two ``index_add_``), never through
-autograd of the energy; it is differentiable in the moduli, the horizon and mu.
+The force is written by hand, never through autograd of the energy: one sparse product with
+the signed bond-dof incidence D (eta = D u, rows (component, bond)), a per-bond scalar, and one
+with D^T (f = -D^T (t y / |y|)); it is differentiable (twice) in u, the moduli, the horizon and
+mu. The two CSR products replace four gathers and a scatter of the bond arrays, 2x faster on
+CPU (benchmarks/README.md, "The bond force as two sparse products").
 
 Rounding: the extension is evaluated as e = eta . (xi + y) / (|y| + |xi|) (= |y| - |xi|,
 since |y|^2 - |xi|^2 = eta . (y + xi)), which carries a relative rounding error of a few
@@ -32,6 +35,10 @@ explicit dynamics (``at(..., dtype=torch.float32)``; float64 is the default).
 """
 from __future__ import annotations
 
+import warnings
+
+import numpy as np
+import scipy.sparse as sp
 import torch
 
 from bayespd.materials import _C_DEV, LPS, BondBased
@@ -55,45 +62,47 @@ class NonlinearBonds:
         self.xi = torch.as_tensor(material.bonds.xi)
         self.length = material.length
         self.n, self.dim = material.particles.n, material.dim
-        # one contiguous array per component (flat dof indices d*i + a): 1-D gathers, element-wise
-        # ops on contiguous arrays and a single index_add_ are the fastest on CPU
-        # (benchmarks/README.md, "Explicit dynamics and Langevin")
-        d = self.dim
-        self._di = [d * self.i + a for a in range(d)]
-        self._dj = [d * self.j + a for a in range(d)]
-        self._scatter_index = torch.cat(self._di + self._dj)
         self._geometry = {}
 
-    def geometry(self, dtype) -> tuple[list[torch.Tensor], torch.Tensor]:
-        """(components of xi, |xi|) in ``dtype`` (converted once per dtype)."""
+    def geometry(self, dtype) -> tuple[torch.Tensor, torch.Tensor]:
+        """(xi as (dim, n_bonds), |xi|) in ``dtype`` (converted once per dtype)."""
         if dtype not in self._geometry:
             if dtype not in (torch.float32, torch.float64):
                 raise ValueError(f"u must be float64 (default) or float32, got {dtype}")
-            xi = self.xi.to(dtype)
-            self._geometry[dtype] = ([xi[:, a].contiguous() for a in range(self.dim)], self.length.to(dtype))
+            self._geometry[dtype] = (self.xi.to(dtype).T.contiguous(), self.length.to(dtype))
         return self._geometry[dtype]
 
+    def incidence(self, dtype) -> tuple[torch.Tensor, torch.Tensor]:
+        """(D, D^T) as torch CSR in ``dtype``: row a n_bonds + b of D holds +1 at the flat dof
+        d j + a and -1 at d i + a of bond b = (i, j), so D u stacks eta = u_j - u_i by component."""
+        key = ("incidence", dtype)
+        if key not in self._geometry:
+            d, nb = self.dim, len(self.i)
+            i, j = self.i.numpy(), self.j.numpy()
+            rows = np.tile(np.arange(d * nb), 2)
+            cols = np.concatenate([d * j + a for a in range(d)] + [d * i + a for a in range(d)])
+            signs = np.repeat([1.0, -1.0], d * nb)
+            D = sp.csr_matrix((signs, (rows, cols)), shape=(d * nb, d * self.n))
+            self._geometry[key] = (_torch_csr(D, dtype), _torch_csr(D.T.tocsr(), dtype))
+        return self._geometry[key]
+
     def components(self, u: torch.Tensor):
-        """([y_a], |y|, e) with y_a the components of the deformed bonds y = xi + u_j - u_i and
+        """(y, |y|, e) with y (dim, n_bonds) the deformed bonds xi + u_j - u_i by component and
         e = |y| - |xi| (cancellation-free, see the module docstring); pass them to ``stretch``
         and ``force`` to evaluate both at one u from one gather."""
         if u.shape != (self.n, self.dim):
             raise ValueError(f"u must have shape ({self.n}, {self.dim}), got {tuple(u.shape)}")
         xi, length = self.geometry(u.dtype)
-        flat = u.reshape(-1)
-        eta = [flat.index_select(0, dj) - flat.index_select(0, di) for di, dj in zip(self._di, self._dj)]
-        y = [ea + xa for ea, xa in zip(eta, xi)]
-        r = torch.hypot(*y) if self.dim == 2 else torch.sqrt(sum(ya * ya for ya in y))
-        e = eta[0] * (y[0] + xi[0])
-        for ea, ya, xa in zip(eta[1:], y[1:], xi[1:]):
-            e = e.addcmul(ea, ya + xa)
-        return y, r, e / (r + length)
+        eta = (self.incidence(u.dtype)[0] @ u.reshape(-1)).view(self.dim, -1)
+        y = eta + xi
+        r = torch.hypot(y[0], y[1]) if self.dim == 2 else torch.linalg.vector_norm(y, dim=0)
+        return y, r, (eta * (y + xi)).sum(0) / (r + length)
 
     def kinematics(self, u: torch.Tensor):
         """(y, |y|, e): deformed bond vectors y = xi + u_j - u_i (n_bonds, dim), their lengths
         and the extensions e = |y| - |xi|."""
         y, r, e = self.components(u)
-        return torch.stack(y, 1), r, e
+        return y.T, r, e
 
     def deformed(self, u: torch.Tensor):
         """(y, |y|): deformed bond vectors xi + u_j - u_i and their lengths."""
@@ -120,6 +129,14 @@ class NonlinearBonds:
         return self.at(params, delta, u.dtype).energy(u, intact, load, eps)
 
 
+def _torch_csr(A: sp.csr_matrix, dtype) -> torch.Tensor:
+    """A scipy CSR matrix as a torch CSR tensor (torch's "beta" notice silenced)."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
+        return torch.sparse_csr_tensor(torch.from_numpy(A.indptr), torch.from_numpy(A.indices),
+                                       torch.from_numpy(A.data).to(dtype), A.shape, check_invariants=True)
+
+
 class _Force:
     """Per-bond coefficients at one (params, delta): ``force(u, intact)``,
     ``strain_energy(u, intact)`` and ``energy(u, intact, load, eps)``."""
@@ -139,11 +156,9 @@ class _Force:
         return components or self.kin.components(u), intact
 
     def _scatter(self, y, t_over_r, like):
-        """Bond force t y/|y| pulls i towards j (+) and j towards i (-): one index_add_."""
-        fb = [ya * t_over_r for ya in y]
-        fb = torch.cat(fb + [-fa for fa in fb])
-        f = torch.zeros(like.numel(), dtype=fb.dtype).index_add_(0, self.kin._scatter_index, fb)
-        return f.view(like.shape)
+        """Bond force t y/|y| pulls i towards j and j towards i: f = -D^T (t y / |y|)."""
+        fb = (y * -t_over_r).reshape(-1)
+        return (self.kin.incidence(fb.dtype)[1] @ fb).view(like.shape)
 
     def energy(self, u, intact=None, load=None, eps: float = 0.0):
         """Strain energy - p . u + (eps/2) u . u (seed 002 eq 3)."""

@@ -18,7 +18,7 @@ from bayespd.damage import CriticalStretch
 from bayespd.solvers import white_noise
 from bayespd.solvers.linear import shifted_factor, spd_factor
 from bayespd.solvers.quasistatic import LoadedBody
-from bayespd.solvers import woodbury
+from bayespd.solvers import trailing, woodbury
 from bayespd.solvers.woodbury import LocallyUpdated, Refined
 from bayespd.sparse import NotPositiveDefiniteError
 
@@ -152,8 +152,8 @@ def test_grouped_columns_are_solved_a_tile_at_a_time(plate, monkeypatch):
     rhs = np.random.default_rng(3).standard_normal(len(active))
     T0 = plate.operator(intact0, active)
     batches = []
-    solve_rows = woodbury._Base._solve
-    monkeypatch.setattr(woodbury._Base, "_solve", lambda self, rows: batches.append(len(rows)) or solve_rows(self, rows))
+    solve_rows = woodbury._Solved._solve
+    monkeypatch.setattr(woodbury._Solved, "_solve", lambda self, rows: batches.append(len(rows)) or solve_rows(self, rows))
 
     def run(groups):
         A0 = LocallyUpdated(T0, max_rank=200, groups=groups)
@@ -162,8 +162,8 @@ def test_grouped_columns_are_solved_a_tile_at_a_time(plate, monkeypatch):
         for bonds in (first, second):
             solve = shifted_factor(A0.changed(plate.operator_change(intact0, broken(plate, bonds), active)), s, b).solve
             counts.append(int(np.count_nonzero(batches)))
-        W, order = next(iter(A0._bases.values())).columns(np.zeros(0, dtype=np.int64))
-        return solve, dict(zip(order.tolist(), W.T)), counts
+        base = next(iter(A0._bases.values()))
+        return solve, dict(zip(base.order.tolist(), base.columns.T)), counts
 
     solve, grouped, counts = run(tiles)
     _, alone, counts_alone = run(None)
@@ -175,3 +175,77 @@ def test_grouped_columns_are_solved_a_tile_at_a_time(plate, monkeypatch):
     assert counts == [1, 1] and counts_alone == [1, 2]  # grouped: the second change's new rows were ready
     with pytest.raises(ValueError, match="one label per row"):
         LocallyUpdated(T0, groups=tiles[:-1])
+
+
+needs_cholmod = pytest.mark.skipif(not trailing.available(), reason="the trailing factor needs CHOLMOD")
+
+
+@needs_cholmod
+def test_trailing_factor_half_solves_and_inverse(plate):
+    """Rows last (``TrailingFactor``): forward then backward half solves equal the direct
+    solve to 1e-12, and L_S^-1 is the inverse of the factor's trailing block (its columns are
+    L^-1 e_r for rows r of the region, checked against the forward solve of e_r)."""
+    active = plate.active(torch.ones(plate.n_bonds))
+    M = sp.diags(np.full(len(active), 2.0)) + 1e-3 * plate.operator(torch.ones(plate.n_bonds), active)
+    region = np.flatnonzero(np.abs(plate.particles.x[active // 2, 1] - SIDE / 2) < 1.5)
+    f = trailing.TrailingFactor(M, region)
+    rhs = np.random.default_rng(1).standard_normal((len(active), 2))
+    exact = sla.solve(M.toarray(), rhs)
+    assert np.abs(f.solve(rhs) - exact).max() <= 1e-12 * np.abs(exact).max()
+    r = region[[0, 7]]
+    E = np.zeros((len(active), 2))
+    E[r, [0, 1]] = 1.0
+    z = f.forward(E)
+    assert np.abs(z[: f.n_first]).max() == 0.0
+    assert np.abs(z[f.n_first:] - f.trailing_inverse[:, f.position[r]]).max() <= 1e-12 * np.abs(z).max()
+    with pytest.raises(ValueError, match="non-empty"):
+        trailing.TrailingFactor(M, [])
+
+
+@needs_cholmod
+def test_region_update_equals_a_fresh_factor(plate):
+    """Woodbury on a region ordered last: two successive changes inside it solve like a fresh
+    factorisation to 1e-10 (one and several right-hand sides) and like the column-solving
+    path; a change with a row outside the region asks for a new factor."""
+    intact0 = torch.ones(plate.n_bonds)
+    active = plate.active(intact0)
+    s, b = np.full(len(active), 2.0), 1e-3
+    y = plate.particles.x[:, 1]
+    near = [np.abs(y[ends] - SIDE / 2) for ends in (plate.bonds.i, plate.bonds.j)]
+    centre = np.flatnonzero((near[0] < 1) & (near[1] < 1))  # both ends on the two middle rows
+    region = np.flatnonzero(np.abs(y[active // 2] - SIDE / 2) < 1)
+    T0 = plate.operator(intact0, active)
+    A0, plain = LocallyUpdated(T0, max_rank=200, region=region), LocallyUpdated(T0, max_rank=200)
+    rhs = np.random.default_rng(0).standard_normal((len(active), 3))
+    for bonds in (centre[:5], centre[:20]):
+        intact = broken(plate, bonds)
+        change = plate.operator_change(intact0, intact, active)
+        exact = spd_factor(sp.diags(s) + b * plate.operator(intact, active)).solve(rhs)
+        got = shifted_factor(A0.changed(change), s, b)
+        assert np.abs(got.solve(rhs) - exact).max() <= 1e-10 * np.abs(exact).max()
+        assert np.abs(got.solve(rhs[:, 0]) - exact[:, 0]).max() <= 1e-10 * np.abs(exact).max()
+        assert np.abs(got.solve(rhs) - shifted_factor(plain.changed(change), s, b).solve(rhs)).max() <= 1e-10 * np.abs(exact).max()
+    far = np.flatnonzero((near[0] == 2.5) & (near[1] == 2.5))[:1]  # on the lowest free row
+    assert A0.changed(plate.operator_change(intact0, broken(plate, far), active)) is None
+
+
+@needs_cholmod
+@pytest.mark.parametrize("tangent, where", [("lagged", "everywhere"), ("exact", "on the crack"),
+                                            ("exact", "away from it")])
+def test_fracture_with_a_zone_follows_fracture_without(plate, tangent, where):
+    """The noisy mode-I run of ``test_fracture_with_updates_follows_fracture_with_refactorisation``
+    with a crack zone ordered last in the factor breaks the same bonds as without one, to
+    1e-9 in u. Lagged tangent, zone over the whole body: the same operators, so only the
+    algebra differs. Exact tangent (the factor only preconditions): a zone on the crack line,
+    and one away from it (every change leaves it, and each fresh factor takes in the damage)."""
+    lams = np.linspace(0.1, 2.0, 12)
+    C = white_noise(50.0, len(plate.constraints.free_dofs))
+    frac = StochasticFracture(plate, CriticalStretch(0.01), C, eta=50.0**2 / 1e3)
+    y = plate.particles.x[:, 1]
+    zone = {"everywhere": y > -1, "on the crack": np.abs(y - SIDE / 2) < 2, "away from it": y > SIDE - 4.5}[where]
+    a = frac.run(lams, 1.0, seed=5, tangent=tangent)
+    b = frac.run(lams, 1.0, seed=5, tangent=tangent, zone=zone)
+    assert a.broken[-1] > 0 and np.array_equal(a.broken, b.broken)
+    assert torch.allclose(a.u, b.u, rtol=0, atol=1e-9 * float(a.u.abs().max()))
+    with pytest.raises(ValueError, match="mask of the"):
+        frac.run(lams, 1.0, seed=5, zone=zone[:-1])

@@ -64,25 +64,31 @@ def plate_driver(params: dict, *, side, h, m, sigma, relax, dt) -> StochasticFra
 
 def notched_plate(side: float = 40.0, h: float = 1.0, m: int = 3, s0_nominal: float = 0.0094,
                   steps: int = 50, reach: float = 2.0, sigma: float = 1500.0, relax: float = 1e4,
-                  dt: float = 1.0, observed_path=None, tangent: str = "lagged") -> FractureScene:
+                  dt: float = 1.0, observed_path=None, tangent: str = "lagged",
+                  band: float | None = 8.0) -> FractureScene:
     """The scene: ``steps`` top displacements up to ``reach`` times the elastic estimate of
     initiation at ``s0_nominal`` (s0 / max stretch at unit displacement, independent of K);
     failure when the crack has run through half the ligament (side / 4). Paths are traced at
     phi > 0.3: the faces of a straight crack have phi = 0.44 at delta = 3h, of a kinked one
     0.3-0.4, and 0.4 would cut a kinked path apart (``experiments/crack_paths.py``).
     ``tangent``: "lagged" by default, 2.1x faster than "exact" at 10k particles, its mean
-    outcomes within one standard error of the exact tangent's (``benchmarks/fracture.py``)."""
+    outcomes within one standard error of the exact tangent's (``benchmarks/fracture.py``).
+    ``band``: the crack zone (ordered last in the factor) is the ligament ahead of the notch
+    tip, from one horizon behind it, ``band`` spacings either side of the notch line (the
+    paths of ``experiments/crack_ensemble.py`` stay within 4 h of it; None: no zone)."""
     if not (side > 0 and h > 0 and side / h >= 8 and int(m) == m and m >= 2):
         raise ValueError("need side >= 8 h, h > 0 and an integer horizon factor m >= 2")
     body = plate_body(side, h, m, 1.0)
     unit = quasi_static(body, [1e-3]).u / 1e-3
     initiation = s0_nominal / float(body.kinematics.stretch(unit).max())
     lams = np.linspace(reach / steps, reach, steps) * initiation
+    x = np.asarray(body.particles.x)
+    zone = None if band is None else ((x[:, 0] >= side / 2 - m * h) & (np.abs(x[:, 1] - side / 2) <= band * h))
     build = partial(plate_driver, side=float(side), h=float(h), m=int(m), sigma=float(sigma),
                     relax=float(relax), dt=float(dt))
-    return FractureScene(build, ("K", "s0"), lams, dt, np.asarray(body.particles.x),
+    return FractureScene(build, ("K", "s0"), lams, dt, x,
                          origin=(side / 2, side / 2), direction=(1.0, 0.0),
                          failure_length=side / 4, load_component=1, path_threshold=0.3,
-                         observed_path=observed_path, tangent=tangent,
+                         observed_path=observed_path, tangent=tangent, zone=zone,
                          attrs={"scene": "notched_plate", "side": side, "h": h, "m": m,
                                 "sigma": sigma, "relax": relax})

@@ -14,7 +14,8 @@ eq 4 with the damage law of eq 2 or 5, ``bayespd.solvers.fracture``) and what to
   ``load_component``: the reaction component reported as the load (None: its norm);
 * ``observed_path``: an observed crack polyline (k, 2) to overlay, or None;
 * ``tangent`` and ``max_rank``: the operator of the steps, "exact" or "lagged", and the
-  largest Woodbury update of its factor (``StochasticFracture.run``).
+  largest Woodbury update of its factor; ``zone``: a mask of the particles where cracks may
+  run, ordered last in that factor (``StochasticFracture.run``), or None.
 """
 from __future__ import annotations
 
@@ -52,6 +53,7 @@ class FractureScene:
     tangent: str = "exact"
     max_rank: int = 512
     observed_path: np.ndarray | None = None
+    zone: np.ndarray | None = None
     attrs: dict = field(default_factory=dict)
 
     def __post_init__(self):
@@ -72,6 +74,10 @@ class FractureScene:
         x = np.asarray(self.x, dtype=np.float64)
         if x.ndim != 2 or x.shape[1] != 2:
             raise ValueError(f"x must be the (N, 2) particle positions, got shape {x.shape}")
+        if self.zone is not None:
+            if np.shape(self.zone) != (len(x),):
+                raise ValueError(f"zone must be a mask of the {len(x)} particles, got shape {np.shape(self.zone)}")
+            object.__setattr__(self, "zone", np.asarray(self.zone, dtype=bool))
         object.__setattr__(self, "x", x)
         object.__setattr__(self, "load_factors", lams)
         object.__setattr__(self, "direction", tuple(d / np.linalg.norm(d)))
@@ -98,7 +104,7 @@ def realise(scene: FractureScene, params: dict, seed: int, device=None) -> dict:
             run = scene.build({k: float(params[k]) for k in scene.params}).run(
                 scene.load_factors, scene.dt, seed=int(seed), hold=scene.hold,
                 max_steps=scene.max_steps, path_threshold=scene.path_threshold, tangent=scene.tangent,
-                max_rank=scene.max_rank)
+                max_rank=scene.max_rank, zone=scene.zone)
     finally:
         torch.set_num_threads(threads)
         sparse.FACTOR_THREADS = factor_threads

@@ -86,7 +86,8 @@ def _plan(scene: FractureScene, draws: dict, seed: int) -> dict:
     return {"seed": int(seed), "posterior_sha256": digest.hexdigest(), "build": described,
             "params": list(scene.params), "load_factors": scene.load_factors.tolist(), "dt": scene.dt,
             "hold": scene.hold, "max_steps": scene.max_steps, "path_threshold": scene.path_threshold,
-            "particles": len(scene.x)}
+            "particles": len(scene.x), "operator": f"{scene.tangent}:{scene.max_rank}",
+            "zone_sha256": None if scene.zone is None else hashlib.sha256(scene.zone.tobytes()).hexdigest()}
 
 
 def _task(scene, params, brownian, device):

@@ -39,16 +39,19 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from bayespd.damage import DamageIndex, crack_length, crack_path
 from bayespd.solvers.dynamics import NumericalInstabilityError
 from bayespd.solvers.langevin import Langevin
+from bayespd.solvers import trailing
 from bayespd.solvers.noise import Covariance
 from bayespd.solvers.quasistatic import LoadedBody
 from bayespd.solvers.woodbury import LocallyUpdated, Refined
 
 
 COLUMN_TILE = 4  # side (in spacings h) of the tiles of dofs whose Woodbury columns are solved together
+ZONE_MARGIN = 2  # horizons around the damage that a fresh factor's region takes in (``run``'s zone)
 REFRESH_ITERATIONS = 8  # conjugate-gradient iterations per step beyond which the factor is renewed
 TANGENTS = ("exact", "lagged")  # the operators of the steps (module docstring)
 
@@ -105,17 +108,24 @@ class StochasticFracture:
 
     def run(self, load_factors, dt: float, seed, hold: bool = True, max_steps: int | None = None,
             path_threshold: float = 0.4, refactor_tol: float = 1e-2, max_rank: int = 512,
-            tangent: str = "exact") -> Realisation:
+            tangent: str = "exact", zone=None) -> Realisation:
         """March through ``load_factors`` (one per step; with ``hold`` a step that breaks a bond
         (intact fraction crossing 1/2) is repeated at the same factor, up to ``max_steps``
         steps in all, default 10 per factor). The operator follows the intact fractions when
         one has moved by more than ``refactor_tol`` since it last did (the sharp law: whenever
         a bond breaks), by a Woodbury update of rank up to ``max_rank`` (0: factorise at
         every change). ``tangent``: "exact" or "lagged" (bond-based; module docstring).
+        ``zone``: (N,) mask of the particles where the crack may run (with CHOLMOD their dofs
+        are ordered last in the factor, and the Woodbury columns need no solves,
+        ``woodbury.LocallyUpdated(region=...)``; a factor made after damage also takes in
+        the particles within ZONE_MARGIN horizons of the damaged bonds' ends).
         ``seed``: an int or a ``torch.Generator``; the same seed reproduces the run bit for
         bit. Raises NumericalInstabilityError on a blow-up."""
         check_tangent(tangent)
         body, law = self.body, self.damage
+        if zone is not None and np.shape(zone) != (body.particles.n,):
+            raise ValueError(f"zone must be a mask of the {body.particles.n} particles")
+        zone = None if zone is None or not trailing.available() else np.asarray(zone, dtype=bool)
         exact = tangent == "exact" and body.geometric
         lams = np.asarray(load_factors, dtype=float)
         max_steps = max_steps or 10 * len(lams)
@@ -124,7 +134,7 @@ class StochasticFracture:
         state = law.init(body.n_bonds)
         intact = operated = law.intact(state)
         u = torch.zeros(body.particles.n, body.particles.dim)
-        base = self._factorised(intact, u, max_rank)
+        base = self._factorised(intact, u, max_rank, zone)
         step, A = self._stepper(intact, u, base, exact)
         rec = {k: [] for k in ("t", "lam", "reac", "broken", "length")}
         k = n = 0
@@ -145,7 +155,8 @@ class StochasticFracture:
             stale = getattr(A, "iterations", 0) > REFRESH_ITERATIONS
             if stale or float((intact - operated).abs().max()) > refactor_tol:
                 operated = intact
-                base = self._factorised(intact, u, max_rank) if stale else self._updated(base, intact, u, max_rank)
+                base = (self._factorised(intact, u, max_rank, zone) if stale
+                        else self._updated(base, intact, u, max_rank, zone))
                 step, A = self._stepper(intact, u, base, exact)
             if broke:
                 phi = damage_index(intact)
@@ -163,17 +174,34 @@ class StochasticFracture:
                            crack_path(body.particles, phi, path_threshold), u, intact,
                            None if isinstance(seed, torch.Generator) else int(seed))
 
-    def _factorised(self, intact, u, max_rank: int) -> "_Operated":
+    def _factorised(self, intact, u, max_rank: int, zone=None) -> "_Operated":
         """A fresh operator at (intact, u) on the dofs still solved for."""
         body = self.body
         active = body.active(intact)
         A = None
         if len(active):
             tiles = body.tiles(active, COLUMN_TILE * body.particles.h)
-            A = LocallyUpdated(body.operator(intact, active, u), max_rank, groups=tiles)
+            A = LocallyUpdated(body.operator(intact, active, u), max_rank, groups=tiles,
+                               region=self._region(active, intact, zone))
         return _Operated(A, A, intact, u, active)
 
-    def _updated(self, base: "_Operated", intact, u, max_rank: int) -> "_Operated":
+    def _region(self, active, intact, zone) -> np.ndarray | None:
+        """The positions in ``active`` of the dofs of the zone's particles and of those
+        within ZONE_MARGIN horizons of a damaged bond's end (None: no zone)."""
+        if zone is None:
+            return None
+        body = self.body
+        inside = zone.copy()
+        damaged = torch.nonzero(torch.as_tensor(intact) < 1).reshape(-1).numpy()
+        if len(damaged):
+            x = np.asarray(body.particles.x)
+            ends = np.unique(np.concatenate([body.bonds.i[damaged], body.bonds.j[damaged]]))
+            near = cKDTree(x[ends]).query(x, distance_upper_bound=ZONE_MARGIN * float(body.delta))[0]
+            inside |= np.isfinite(near)
+        region = np.flatnonzero(inside[active // body.particles.dim])
+        return region if len(region) else None
+
+    def _updated(self, base: "_Operated", intact, u, max_rank: int, zone=None) -> "_Operated":
         """The factor at ``intact``: base's, updated by the change since it was made (the
         damaged zone's tangent at u, the rest at base's u), or a fresh one when the active
         dofs changed or the change is too large for a Woodbury update."""
@@ -183,7 +211,7 @@ class StochasticFracture:
             A = base.factored.changed(change)
             if A is not None:
                 return _Operated(A, base.factored, base.intact, base.u, active)
-        return self._factorised(intact, u, max_rank)
+        return self._factorised(intact, u, max_rank, zone)
 
     def _stepper(self, intact, u, operated: "_Operated", exact: bool):
         """(step, A): step(u, lam, intact, dt, gen, f) -> u, one theta-step with the force at

@@ -16,7 +16,10 @@ eta du/dt = -grad V, preconditioned by C.
 Time stepping, the theta-scheme with a fixed SPD operator A (the linearised Hessian of V),
 a = dt / eta and Brownian increments dB_n ~ N(0, dt I):
 
-    (I + theta a C A) U_{n+1} = U_n + a C (f(U_n) + theta A U_n) + sqrt(2) C^{1/2} dB_n.
+    (I + theta a C A) U_{n+1} = U_n + a C (f(U_n) + theta A U_n) + sqrt(2) C^{1/2} dB_n,
+
+solved in its increment form (I + theta a C A) (U_{n+1} - U_n) = a C f(U_n) + sqrt(2) C^{1/2} dB_n
+(the same equation; no product with A, and no cancellation between U_n and its update).
 
 theta = 0 is Euler-Maruyama (no solve), stable for linear f iff dt < 2 eta / lambda_max(C A)
 (for theta < 1/2 the limit is 2 eta / ((1 - 2 theta) lambda_max(C A))); theta >= 1/2 is
@@ -106,18 +109,13 @@ class Langevin:
             generator = _generator(generator)
         a = dt / self.eta
         solve = self._solver(theta * a) if theta > 0 else None
-        A = self.operator
         u = u0.clone()
         monitor, saves = GrowthMonitor(steps), _Saver(u, save_every)
         for n in range(1, steps + 1):
             dB = brownian[n - 1] if brownian is not None else math.sqrt(dt) * torch.randn(
                 (self.C.n_xi, *batch), generator=generator, dtype=u.dtype)
-            drift = self.force(u)
-            if theta > 0:
-                drift = drift + theta * torch.from_numpy(np.asarray(A @ to_numpy(u))).to(u.dtype)
-            u_new = u + a * self.C.matvec(drift) + math.sqrt(2) * self.C.sample(dB)
-            if solve is not None:
-                u_new = solve(u_new)
+            increment = a * self.C.matvec(self.force(u)) + math.sqrt(2) * self.C.sample(dB)
+            u_new = u + (increment if solve is None else solve(increment))
             if monitor(n, float(((u_new - u0) ** 2).sum())):
                 raise self._blow_up(n, dt, theta, u0, monitor)
             u = u_new

@@ -18,6 +18,16 @@ whole group are solved in one batched solve when the first of them is needed: a 
 touches the rows next to those it touched last, and a 32-column solve costs about 6
 single ones (CHOLMOD, 18.8k dofs; the 10k-particle fracture run's columns take 1.1 s
 instead of 2.3 s).
+
+With ``region`` (the rows a change may touch, known in advance: a band where the crack can
+run) the factor orders them last (``trailing.TrailingFactor``, P M0 P^T = L L^T) and the
+identity is applied in the half-solved variables: with G = L^-1 E, z = L^-1 r,
+
+    M^-1 r = L^-T (z - G c),   c = (I + D G^T G)^-1 D G^T z,
+
+(W = L^-T G, so x0_R = G^T z and W_R = G^T G), where G is supported on the region and read
+off the dense inverse of the factor's trailing block: no solve per changed row, and O(|region| k)
+work per step instead of O(n k).
 """
 from __future__ import annotations
 
@@ -25,6 +35,7 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
+from bayespd.solvers import trailing
 from bayespd.solvers.linear import spd_factor
 from bayespd.sparse import Factor, NotPositiveDefiniteError, PCGFactor
 
@@ -35,26 +46,33 @@ class LocallyUpdated:
     from the one of diag(s) + b A0 (shared by every operator ``changed`` from the same A0).
     ``max_rank``: the most rows a change may touch before ``changed`` asks for a new A0;
     ``groups``: (n,) labels of the rows whose columns are solved together (default: each row
-    alone; module docstring)."""
+    alone; module docstring); ``region``: the rows a change may touch, ordered last in the
+    factor (``trailing.TrailingFactor``: the columns are then read off one dense triangular
+    inverse, no solve per row; a change outside it asks for a new A0; CHOLMOD only)."""
 
-    def __init__(self, A0, max_rank: int = 512, delta=None, _bases=None, groups=None):
+    def __init__(self, A0, max_rank: int = 512, delta=None, _bases=None, groups=None, region=None):
         self.A0, self.delta, self.max_rank = sp.csr_matrix(A0), delta, int(max_rank)
         self.shape = self.A0.shape
         if groups is not None and np.shape(groups) != (self.shape[0],):
             raise ValueError(f"groups must hold one label per row ({self.shape[0]})")
+        if region is not None and not trailing.available():
+            raise ValueError("region= needs CHOLMOD (the 'fast' extra); use groups= without it")
         self.groups = None if groups is None else np.asarray(groups)
+        self.region = None if region is None else np.asarray(region, dtype=np.int64)
         self._bases = {} if _bases is None else _bases
 
     def changed(self, delta) -> "LocallyUpdated | None":
         """A0 + delta, delta (sparse, symmetric) the whole change since A0; None when it
-        touches more than ``max_rank`` rows (factorise a new A0 instead)."""
+        touches more than ``max_rank`` rows, or rows outside ``region`` (factorise a new A0)."""
         delta = sp.csr_matrix(delta)
         delta.eliminate_zeros()
         if delta.shape != self.shape:
             raise ValueError(f"the change must be {self.shape[0]} x {self.shape[1]} like A0")
-        if np.count_nonzero(np.diff(delta.indptr)) > self.max_rank:
+        rows = np.flatnonzero(np.diff(delta.indptr))
+        if len(rows) > self.max_rank or (self.region is not None and not np.isin(rows, self.region).all()):
             return None
-        return LocallyUpdated(self.A0, self.max_rank, delta if delta.nnz else None, self._bases, self.groups)
+        return LocallyUpdated(self.A0, self.max_rank, delta if delta.nnz else None, self._bases, self.groups,
+                              self.region)
 
     def __matmul__(self, v):
         out = self.A0 @ v
@@ -65,56 +83,81 @@ class LocallyUpdated:
         change made it indefinite."""
         key = (float(b), np.asarray(s, dtype=np.float64).tobytes())
         if key not in self._bases:
-            # solved many times: METIS's smaller fill makes each solve ~25 % faster than AMD's
-            factor = spd_factor(sp.diags(s) + b * self.A0, ordering="metis")
+            M0 = sp.diags(s) + b * self.A0
             self._bases.clear()  # the latest only, in the dict every operator changed from A0 shares
-            self._bases[key] = _Base(factor, self.shape[0], self.max_rank, self.groups)
+            if self.region is None:
+                # solved many times: METIS's smaller fill makes each solve ~25 % faster than AMD's
+                self._bases[key] = _Solved(spd_factor(M0, ordering="metis"), self.shape[0], self.max_rank, self.groups)
+            else:
+                self._bases[key] = _Trailing(trailing.TrailingFactor(M0, self.region), self.max_rank)
         base = self._bases[key]
         if self.delta is None:
-            return base.factor
-        rows = np.flatnonzero(np.diff(self.delta.indptr))
-        W, order = base.columns(rows)
+            return Factor(base.solve)
+        order = base.touch(np.flatnonzero(np.diff(self.delta.indptr)))
         D = b * self.delta[order][:, order]
-        lu, piv = S = sla.lu_factor(np.eye(len(order)) + D @ W[order])
+        lu, piv = S = sla.lu_factor(np.eye(len(order)) + D @ base.gram(order))
         flips = np.count_nonzero(piv != np.arange(len(piv)))
         if not (np.all(np.isfinite(lu)) and np.prod(np.sign(np.diag(lu))) * (-1) ** flips > 0):
             raise NotPositiveDefiniteError("the operator is not positive definite after the "
                                            "change (det(I + D W_R) <= 0): factorise it afresh")
-
-        def solve(r):
-            x0 = np.asarray(base.factor.solve(r))
-            return x0 - W @ sla.lu_solve(S, D @ x0[order])
-
-        return Factor(solve)
+        return Factor(base.corrected(lambda x_R: sla.lu_solve(S, D @ x_R)))
 
 
-class _Base:
-    """The factor P of diag(s) + b A0 and the columns P^-1 e_r solved so far, in the order
-    their rows were first touched (rows of a buffer allocated as they come, up to
-    ``capacity``, then doubling); with ``groups``, the columns of a touched row's group that
-    are not needed yet wait in ``_ready``."""
+class _Columns:
+    """The columns of rows touched so far, as rows of a buffer in the order the rows were
+    first touched (allocated as they come, up to ``capacity`` rows, then doubling);
+    ``_new(rows)`` makes the columns of new rows, (len(rows), width)."""
 
-    def __init__(self, factor: Factor, n: int, capacity: int, groups=None):
-        self.factor, self.n, self.k, self.capacity = factor, n, 0, max(int(capacity), 16)
-        self.groups = groups
+    def __init__(self, width: int, capacity: int):
+        self.width, self.k, self.capacity = width, 0, max(int(capacity), 16)
         self.order = np.zeros(0, dtype=np.int64)
-        self._Wt = np.empty((0, n))
-        self._ready = {}
+        self._rows = np.empty((0, width))
 
-    def columns(self, rows: np.ndarray):
-        """(W, order): P^-1 E (n, k) for every row solved so far, after solving the new ``rows``."""
+    def touch(self, rows: np.ndarray) -> np.ndarray:
+        """Make the columns of the ``rows`` not touched before; return the order of all."""
         new = np.setdiff1d(rows, self.order)
         if len(new):
-            self._solve(np.array([r for r in new.tolist() if r not in self._ready], dtype=np.int64))
-            if self.k + len(new) > len(self._Wt):
+            if self.k + len(new) > len(self._rows):
                 size = self.capacity if self.k + len(new) <= self.capacity else 2 * (self.k + len(new))
-                grown = np.empty((size, self.n))
-                grown[: self.k] = self._Wt[: self.k]
-                self._Wt = grown
-            self._Wt[self.k: self.k + len(new)] = [self._ready.pop(r) for r in new.tolist()]
+                grown = np.empty((size, self.width))
+                grown[: self.k] = self._rows[: self.k]
+                self._rows = grown
+            self._rows[self.k: self.k + len(new)] = self._new(new)
             self.k += len(new)
             self.order = np.concatenate([self.order, new])
-        return self._Wt[: self.k].T, self.order
+        return self.order
+
+    @property
+    def columns(self) -> np.ndarray:
+        return self._rows[: self.k].T
+
+
+class _Solved(_Columns):
+    """The factor P of diag(s) + b A0 and the columns W = P^-1 E solved so far; with
+    ``groups``, the columns of a touched row's group that are not needed yet wait in
+    ``_ready``. M^-1 r = x0 - W c, x0 = P^-1 r, c = correct(x0_R)."""
+
+    def __init__(self, factor: Factor, n: int, capacity: int, groups=None):
+        super().__init__(n, capacity)
+        self.factor, self.n, self.groups = factor, n, groups
+        self.solve = factor.solve
+        self._ready = {}
+
+    def gram(self, order) -> np.ndarray:
+        return self.columns[order]  # W_R = E^T P^-1 E
+
+    def corrected(self, correct):
+        W, order = self.columns, self.order
+
+        def solve(r):
+            x0 = np.asarray(self.factor.solve(r))
+            return x0 - W @ correct(x0[order])
+
+        return solve
+
+    def _new(self, rows: np.ndarray) -> list:
+        self._solve(np.array([r for r in rows.tolist() if r not in self._ready], dtype=np.int64))
+        return [self._ready.pop(r) for r in rows.tolist()]
 
     def _solve(self, rows: np.ndarray):
         """Solve the columns of ``rows`` (and of the rest of their groups) into ``_ready``."""
@@ -126,6 +169,42 @@ class _Base:
         E[rows, np.arange(len(rows))] = 1.0
         cols = np.asarray(self.factor.solve(E)).reshape(self.n, -1).T
         self._ready.update(zip(rows.tolist(), cols))
+
+
+class _Trailing(_Columns):
+    """A ``trailing.TrailingFactor`` L of diag(s) + b A0 with the region last, and the
+    columns G = L^-1 E (on the region: columns of L_S^-1). W_R = G^T G = (S^-1)_RR and
+    M^-1 r = L^-T (z - G c), z = L^-1 r, c = correct(G^T z): one forward and one backward
+    half solve, O(|region| k) besides."""
+
+    def __init__(self, factor: trailing.TrailingFactor, capacity: int):
+        super().__init__(len(factor.trailing_inverse), capacity)
+        self.factor, self.solve = factor, factor.solve
+        self._gram = np.zeros((0, 0))
+
+    def gram(self, order) -> np.ndarray:
+        """G^T G for ``order`` (the rows touched so far), extended by the new columns only."""
+        G, old = self.columns, len(self._gram)
+        if self.k > old:
+            grown = np.empty((self.k, self.k))
+            grown[:old, :old] = self._gram
+            grown[old:] = G[:, old:].T @ G
+            grown[:old, old:] = grown[old:, :old].T
+            self._gram = grown
+        return self._gram
+
+    def corrected(self, correct):
+        G, m = self.columns, self.factor.n_first
+
+        def solve(r):
+            z = self.factor.forward(r)
+            z[m:] -= G @ correct(G.T @ z[m:])
+            return self.factor.backward(z)
+
+        return solve
+
+    def _new(self, rows: np.ndarray) -> np.ndarray:
+        return self.factor.trailing_inverse[:, self.factor.position[rows]].T
 
 
 class Refined:
