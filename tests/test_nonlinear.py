@@ -1,4 +1,6 @@
 """Nonlinear bond force: f = -grad V, linear limit -K u + O(|u|^2), parameter gradients."""
+from functools import partial
+
 import numpy as np
 import pytest
 import torch
@@ -82,6 +84,18 @@ def test_rigid_rotation_is_force_free(plate, cls):
     assert float(nl.stretch(u).abs().max()) < 1e-14
     f = nl.force(u, params, DELTA)
     assert float(f.abs().max()) < 1e-12 * 3000.0
+
+
+@pytest.mark.parametrize("cls", [bp.BondBased, bp.LPS])
+def test_force_is_twice_differentiable_in_u(cls):
+    """The force through the two sparse products (scipy on the CPU): gradcheck and
+    gradgradcheck in u on a tiny plate."""
+    p = bp.grid_2d(4.0, 3.0, 1.0)
+    nl = NonlinearBonds(cls(p, bp.find_bonds(p, 2.1)))
+    u = random_u(p.n, 0.1).requires_grad_(True)
+    f = partial(nl.force, params={"K": 2.0, "G": 1.0}, delta=2.1)
+    assert torch.autograd.gradcheck(f, (u,))
+    assert torch.autograd.gradgradcheck(f, (u,))
 
 
 @pytest.mark.parametrize("cls", [bp.BondBased, bp.LPS])

@@ -75,7 +75,9 @@ def notched_plate(side: float = 40.0, h: float = 1.0, m: int = 3, s0_nominal: fl
     outcomes within one standard error of the exact tangent's (``benchmarks/fracture.py``).
     ``band``: the crack zone (ordered last in the factor) is the ligament ahead of the notch
     tip, from one horizon behind it, ``band`` spacings either side of the notch line (the
-    paths of ``experiments/crack_ensemble.py`` stay within 4 h of it; None: no zone)."""
+    paths of ``experiments/crack_ensemble.py`` stay within 4 h of it; None: no zone). With
+    the zone, the Woodbury columns cost no solves, and a rank up to 1024 keeps a run on one
+    factorisation (512: two, ``benchmarks/fracture.py``)."""
     if not (side > 0 and h > 0 and side / h >= 8 and int(m) == m and m >= 2):
         raise ValueError("need side >= 8 h, h > 0 and an integer horizon factor m >= 2")
     body = plate_body(side, h, m, 1.0)
@@ -90,5 +92,6 @@ def notched_plate(side: float = 40.0, h: float = 1.0, m: int = 3, s0_nominal: fl
                          origin=(side / 2, side / 2), direction=(1.0, 0.0),
                          failure_length=side / 4, load_component=1, path_threshold=0.3,
                          observed_path=observed_path, tangent=tangent, zone=zone,
+                         max_rank=512 if zone is None else 1024,
                          attrs={"scene": "notched_plate", "side": side, "h": h, "m": m,
                                 "sigma": sigma, "relax": relax})

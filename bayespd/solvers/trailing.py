@@ -17,11 +17,27 @@ CHOLMOD only: its half solves are what make this work (SuperLU has none).
 """
 from __future__ import annotations
 
+import hashlib
+
 import numpy as np
 import scipy.linalg.lapack as lapack
 import scipy.sparse as sp
 
 from bayespd import sparse
+
+
+_ORDERINGS: dict = {}  # pattern digest -> METIS permutation (the latest few; METIS is deterministic)
+
+
+def _metis_order(A: sp.csc_matrix) -> np.ndarray:
+    """CHOLMOD's METIS permutation of A, kept per sparsity pattern: every realisation of a
+    fracture ensemble starts from the same intact pattern (0.2 s of analysis each at 18.8k dofs)."""
+    key = (A.shape[0], hashlib.sha1(A.indptr.tobytes()).hexdigest(), hashlib.sha1(A.indices.tobytes()).hexdigest())
+    if key not in _ORDERINGS:
+        if len(_ORDERINGS) >= 4:
+            _ORDERINGS.pop(next(iter(_ORDERINGS)))
+        _ORDERINGS[key] = sparse.cholmod.analyze(A, mode="supernodal", ordering_method="metis").P()
+    return _ORDERINGS[key]
 
 
 def available() -> bool:
@@ -48,8 +64,7 @@ class TrailingFactor:
         try:
             with sparse.blas_threads(sparse.FACTOR_THREADS):
                 if len(first):
-                    inner = M[first][:, first].tocsc()
-                    first = first[cholmod.analyze(inner, mode="supernodal", ordering_method="metis").P()]
+                    first = first[_metis_order(M[first][:, first].tocsc())]
                 self.perm = np.concatenate([first, last])
                 Mp = M[self.perm][:, self.perm].tocsc()
                 self._f = cholmod.analyze(Mp, mode="supernodal", ordering_method="natural").cholesky(Mp)
