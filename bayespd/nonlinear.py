@@ -24,8 +24,9 @@ For small u both forces equal the linearised -K u up to O(|u|^2).
 The force is written by hand, never through autograd of the energy: one sparse product with
 the signed bond-dof incidence D (eta = D u, rows (component, bond)), a per-bond scalar, and one
 with D^T (f = -D^T (t y / |y|)); it is differentiable (twice) in u, the moduli, the horizon and
-mu. The two CSR products replace four gathers and a scatter of the bond arrays: the force and
-the kinematics of the 10k-particle plate take 4.5 ms instead of 7.3 ms (one thread).
+mu. The two CSR products replace four gathers and a scatter of the bond arrays: one step's
+kinematics, stretch and force of the notched 10k-particle plate take 5.0 ms instead of 7.0
+(one thread; benchmarks/README.md, "A crack zone ordered last").
 
 Rounding: the extension is evaluated as e = eta . (xi + y) / (|y| + |xi|) (= |y| - |xi|,
 since |y|^2 - |xi|^2 = eta . (y + xi)), which carries a relative rounding error of a few
@@ -83,7 +84,7 @@ class NonlinearBonds:
             i, j = self.i.numpy(), self.j.numpy()
             rows = np.tile(np.arange(d * nb), 2)
             cols = np.concatenate([d * j + a for a in range(d)] + [d * i + a for a in range(d)])
-            signs = np.repeat([1.0, -1.0], d * nb).astype(torch.empty(0, dtype=like.dtype).numpy().dtype)
+            signs = np.repeat([1.0, -1.0], d * nb).astype(np.float32 if like.dtype == torch.float32 else np.float64)
             D = sp.csr_matrix((signs, (rows, cols)), shape=(d * nb, d * self.n))
             pair = (D, D.T.tocsr())
             if like.device.type != "cpu":

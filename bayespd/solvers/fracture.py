@@ -42,9 +42,9 @@ import torch
 from scipy.spatial import cKDTree
 
 from bayespd.damage import DamageIndex, crack_length, crack_path
+from bayespd.solvers import trailing
 from bayespd.solvers.dynamics import NumericalInstabilityError
 from bayespd.solvers.langevin import Langevin
-from bayespd.solvers import trailing
 from bayespd.solvers.noise import Covariance
 from bayespd.solvers.quasistatic import LoadedBody
 from bayespd.solvers.woodbury import LocallyUpdated, Refined

@@ -95,7 +95,7 @@ class LocallyUpdated:
             return Factor(base.solve)
         order = base.touch(np.flatnonzero(np.diff(self.delta.indptr)))
         D = b * self.delta[order][:, order]
-        lu, piv = S = sla.lu_factor(np.eye(len(order)) + D @ base.gram(order))
+        lu, piv = S = sla.lu_factor(np.eye(len(order)) + D @ base.gram())
         flips = np.count_nonzero(piv != np.arange(len(piv)))
         if not (np.all(np.isfinite(lu)) and np.prod(np.sign(np.diag(lu))) * (-1) ** flips > 0):
             raise NotPositiveDefiniteError("the operator is not positive definite after the "
@@ -143,8 +143,9 @@ class _Solved(_Columns):
         self.solve = factor.solve
         self._ready = {}
 
-    def gram(self, order) -> np.ndarray:
-        return self.columns[order]  # W_R = E^T P^-1 E
+    def gram(self) -> np.ndarray:
+        """W_R = E^T P^-1 E for the rows touched so far, in ``order``."""
+        return self.columns[self.order]
 
     def corrected(self, correct):
         W, order = self.columns, self.order
@@ -182,8 +183,8 @@ class _Trailing(_Columns):
         self.factor, self.solve = factor, factor.solve
         self._gram = np.zeros((0, 0))
 
-    def gram(self, order) -> np.ndarray:
-        """G^T G for ``order`` (the rows touched so far), extended by the new columns only."""
+    def gram(self) -> np.ndarray:
+        """W_R = G^T G for the rows touched so far, in ``order`` (extended by the new columns only)."""
         G, old = self.columns, len(self._gram)
         if self.k > old:
             grown = np.empty((self.k, self.k))
