@@ -200,6 +200,8 @@ def test_trailing_factor_half_solves_and_inverse(plate):
     assert np.abs(z[f.n_first:] - f.trailing_inverse[:, f.position[r]]).max() <= 1e-12 * np.abs(z).max()
     with pytest.raises(ValueError, match="non-empty"):
         trailing.TrailingFactor(M, [])
+    with pytest.raises(NotPositiveDefiniteError, match="not positive definite"):
+        trailing.TrailingFactor(M - 3.0 * sp.eye(M.shape[0]), region)
 
 
 @needs_cholmod
