@@ -174,7 +174,7 @@ class StochasticFracture:
                            crack_path(body.particles, phi, path_threshold), u, intact,
                            None if isinstance(seed, torch.Generator) else int(seed))
 
-    def _factorised(self, intact, u, max_rank: int, zone=None) -> "_Operated":
+    def _factorised(self, intact, u, max_rank: int, zone) -> "_Operated":
         """A fresh operator at (intact, u) on the dofs still solved for."""
         body = self.body
         active = body.active(intact)
@@ -201,7 +201,7 @@ class StochasticFracture:
         region = np.flatnonzero(inside[active // body.particles.dim])
         return region if len(region) else None
 
-    def _updated(self, base: "_Operated", intact, u, max_rank: int, zone=None) -> "_Operated":
+    def _updated(self, base: "_Operated", intact, u, max_rank: int, zone) -> "_Operated":
         """The factor at ``intact``: base's, updated by the change since it was made (the
         damaged zone's tangent at u, the rest at base's u), or a fresh one when the active
         dofs changed or the change is too large for a Woodbury update."""

@@ -139,7 +139,7 @@ class _Solved(_Columns):
 
     def __init__(self, factor: Factor, n: int, capacity: int, groups=None):
         super().__init__(n, capacity)
-        self.factor, self.n, self.groups = factor, n, groups
+        self.factor, self.groups = factor, groups
         self.solve = factor.solve
         self._ready = {}
 
@@ -166,9 +166,9 @@ class _Solved(_Columns):
             return
         if self.groups is not None:
             rows = np.flatnonzero(np.isin(self.groups, self.groups[rows]))
-        E = np.zeros((self.n, len(rows)))
+        E = np.zeros((self.width, len(rows)))
         E[rows, np.arange(len(rows))] = 1.0
-        cols = np.asarray(self.factor.solve(E)).reshape(self.n, -1).T
+        cols = np.asarray(self.factor.solve(E)).reshape(self.width, -1).T
         self._ready.update(zip(rows.tolist(), cols))
 
 
