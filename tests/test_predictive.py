@@ -7,7 +7,10 @@ import xarray as xr
 
 from bayespd.infer import predictive
 from bayespd.infer.datatree import build_tree
-from bayespd.infer.ensemble_plate import notched_plate
+from bayespd.damage import CriticalStretch
+from bayespd.infer.ensemble_plate import _unit_lambda_min, notched_plate, plate_body
+from bayespd.solvers import white_noise
+from bayespd.solvers.fracture import StochasticFracture
 from bayespd.infer.ensemble_scene import FractureScene, realise
 from bayespd.infer.ensemble_stats import TIMES, aggregate, load_step_lengths, offsets
 from bayespd.infer.ensemble_store import PlanMismatchError
@@ -34,6 +37,26 @@ def quiet_scene():
 def noisy_scene():
     """The same plate with a Brownian force that deflects the crack by a few h."""
     return notched_plate(side=16.0, h=1.0, steps=20, sigma=100.0)
+
+
+def test_the_unit_body_runs_the_dynamics_of_every_modulus(noisy_scene):
+    """Eq 4 with a force linear in K and eta proportional to K does not depend on K
+    (``ensemble_plate``): the driver's unit body at temperature eta / K follows the body at
+    K at temperature eta = sigma^2 / M, M dt K lambda_min(A; 1) = relax, bond for bond,
+    with u equal to rounding and its reactions times K equal to that body's."""
+    K, s0, sigma, relax, dt = 2500.0, 0.0094, 100.0, 1e4, 1.0
+    body = plate_body(16.0, 1.0, 3, K)
+    mobility = relax / (dt * K * _unit_lambda_min(16.0, 1.0, 3))
+    direct = StochasticFracture(body, CriticalStretch(s0), white_noise(sigma, len(body.constraints.free_dofs)),
+                                eta=sigma**2 / mobility)
+    unit, at_K = (driver.run(noisy_scene.load_factors, dt, seed=5, path_threshold=0.3, tangent="lagged",
+                             max_rank=noisy_scene.max_rank, zone=noisy_scene.zone)
+                  for driver in (noisy_scene.build({"K": K, "s0": s0}), direct))
+    assert at_K.broken[-1] > 0 and np.array_equal(unit.broken, at_K.broken)
+    assert torch.equal(unit.intact, at_K.intact)
+    assert float((unit.u - at_K.u).abs().max()) <= 1e-9 * float(at_K.u.abs().max())
+    scale = np.abs(at_K.reaction).max()
+    assert np.abs(unit.reaction - at_K.reaction).max() <= 1e-9 * scale
 
 
 def test_realisation_inputs_depend_only_on_seed_and_index():

@@ -205,6 +205,23 @@ def test_trailing_factor_half_solves_and_inverse(plate):
 
 
 @needs_cholmod
+def test_shared_trailing_factor_is_one_per_operator(plate):
+    """``trailing.shared`` hands the same read-only factor to every caller whose operator and
+    rows are equal bit for bit, and a new one when either changes in any entry."""
+    active = plate.active(torch.ones(plate.n_bonds))
+    M = (sp.diags(np.full(len(active), 2.0)) + 1e-3 * plate.operator(torch.ones(plate.n_bonds), active)).tocsr()
+    region = np.flatnonzero(np.abs(plate.particles.x[active // 2, 1] - SIDE / 2) < 1.5)
+    f = trailing.shared(M, region)
+    assert trailing.shared(M.copy(), region.copy()) is f
+    nudged = M.copy()
+    nudged.data[0] *= 1 + 1e-15
+    assert trailing.shared(nudged, region) is not f
+    assert trailing.shared(M, region[1:]) is not f
+    with pytest.raises(ValueError, match="read-only"):
+        f.trailing_inverse[0, 0] = 0.0
+
+
+@needs_cholmod
 def test_region_update_equals_a_fresh_factor(plate):
     """Woodbury on a region ordered last: two successive changes inside it solve like a fresh
     factorisation to 1e-10 (one and several right-hand sides) and like the column-solving

@@ -5,7 +5,11 @@ Posterior parameters: the bulk modulus ``K`` and the critical stretch ``s0``.
 
 The mobility M = sigma^2 / eta is set so that M dt lambda_min(A) = ``relax`` (one step relaxes
 the elastic field); the bond-based operator is linear in K (c = 9 K / (pi t delta^3)), so
-lambda_min(A; K) = K lambda_min(A; 1), found once per process.
+lambda_min(A; K) = K lambda_min(A; 1), found once per process. The force is linear in K too,
+so eq 4 at K is eq 4 of the unit-modulus body at temperature eta / K = sigma^2 dt
+lambda_min(A; 1) / relax, which does not depend on K: every draw runs the same unit body
+(one per process) with the same step operator, whose factor is made once per process
+(``trailing.shared``), and only its reactions are scaled by K.
 """
 from __future__ import annotations
 
@@ -44,22 +48,29 @@ def plate_body(side, h, m, K) -> LoadedBody:
 def _unit_lambda_min(side, h, m) -> float:
     """lambda_min of the intact operator at K = 1 (shift-invert Lanczos from a fixed start
     vector: ARPACK's default random start changes the last bits from run to run)."""
-    body = plate_body(side, h, m, 1.0)
+    body = _unit_body(side, h, m)
     intact = torch.ones(body.n_bonds)
     A = body.operator(intact, body.active(intact))
     v0 = np.ones(A.shape[0])
     return float(sla.eigsh(A, k=1, sigma=0, v0=v0, return_eigenvectors=False)[0])
 
 
+@lru_cache(maxsize=4)
+def _unit_body(side, h, m) -> LoadedBody:
+    """The unit-modulus plate every driver of a process shares (module docstring)."""
+    return plate_body(side, h, m, 1.0)
+
+
 def plate_driver(params: dict, *, side, h, m, sigma, relax, dt) -> StochasticFracture:
-    """The stochastic fracture driver at ``params = {"K": ..., "s0": ...}``."""
+    """The stochastic fracture driver at ``params = {"K": ..., "s0": ...}``: the unit body at
+    temperature sigma^2 dt lambda_min(A; 1) / relax, its reactions times K (module docstring)."""
     K, s0 = params["K"], params["s0"]
     if not (K > 0 and s0 > 0):
         raise ValueError(f"K and s0 must be positive, got K={K}, s0={s0}")
-    body = plate_body(side, h, m, K)
-    mobility = relax / (dt * K * _unit_lambda_min(side, h, m))
+    body = _unit_body(side, h, m)
     noise = white_noise(sigma, len(body.constraints.free_dofs))
-    return StochasticFracture(body, CriticalStretch(s0), noise, eta=sigma**2 / mobility)
+    eta = sigma**2 * dt * _unit_lambda_min(side, h, m) / relax
+    return StochasticFracture(body, CriticalStretch(s0), noise, eta=eta, reaction_scale=K)
 
 
 def notched_plate(side: float = 40.0, h: float = 1.0, m: int = 3, s0_nominal: float = 0.0094,
@@ -80,7 +91,7 @@ def notched_plate(side: float = 40.0, h: float = 1.0, m: int = 3, s0_nominal: fl
     factorisation (512: two, ``benchmarks/fracture.py``)."""
     if not (side > 0 and h > 0 and side / h >= 8 and int(m) == m and m >= 2):
         raise ValueError("need side >= 8 h, h > 0 and an integer horizon factor m >= 2")
-    body = plate_body(side, h, m, 1.0)
+    body = _unit_body(side, h, m)
     unit = quasi_static(body, [1e-3]).u / 1e-3
     initiation = s0_nominal / float(body.kinematics.stretch(unit).max())
     lams = np.linspace(reach / steps, reach, steps) * initiation

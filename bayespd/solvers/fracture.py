@@ -95,16 +95,23 @@ class StochasticFracture:
     """Seed 002 eq 4 with damage for ``body`` (a ``quasistatic.LoadedBody``): ``damage`` law,
     noise ``covariance`` C on the body's free dofs (``noise.white_noise`` or
     ``karhunen_loeve(..., dofs=body.constraints.free_dofs)``), temperature ``eta``, and the
-    theta of the scheme (1: linearly implicit Euler, robust for the nonlinear force)."""
+    theta of the scheme (1: linearly implicit Euler, robust for the nonlinear force).
+    ``reaction_scale`` multiplies the recorded reactions: a material whose force is linear in
+    a modulus K runs as the unit-modulus body at temperature eta / K (the same dynamics), whose
+    factor then serves every K (``ensemble_plate``), and reports K times its reactions."""
 
-    def __init__(self, body: LoadedBody, damage, covariance: Covariance, eta: float, theta: float = 1.0):
+    def __init__(self, body: LoadedBody, damage, covariance: Covariance, eta: float, theta: float = 1.0,
+                 reaction_scale: float = 1.0):
         n_free = len(body.constraints.free_dofs)
         if covariance.n != n_free:
             raise ValueError(f"the covariance must live on the {n_free} free dofs of the body "
                              "(pass dofs=body.constraints.free_dofs to karhunen_loeve)")
         if not 0.5 <= theta <= 1:
             raise ValueError("theta must lie in [1/2, 1]: the operator is needed for stability")
+        if not reaction_scale > 0:
+            raise ValueError(f"reaction_scale must be positive, got {reaction_scale}")
         self.body, self.damage, self.C, self.eta, self.theta = body, damage, covariance, eta, theta
+        self.reaction_scale = float(reaction_scale)
 
     def run(self, load_factors, dt: float, seed, hold: bool = True, max_steps: int | None = None,
             path_threshold: float = 0.4, refactor_tol: float = 1e-2, max_rank: int = 512,
@@ -164,7 +171,7 @@ class StochasticFracture:
             rec["t"].append(n * dt)
             rec["lam"].append(lams[k])
             f = body.internal(u, intact, bonds_now)
-            rec["reac"].append(body.reaction(u, intact, f).numpy())
+            rec["reac"].append(self.reaction_scale * body.reaction(u, intact, f).numpy())
             rec["broken"].append(int((intact < 0.5).sum()))
             rec["length"].append(length)
             k += not (hold and broke)

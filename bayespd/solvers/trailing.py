@@ -27,6 +27,7 @@ from bayespd import sparse
 
 
 _ORDERINGS: dict = {}  # pattern digest -> METIS permutation (the latest few; METIS is deterministic)
+_FACTORS: dict = {}  # digest of (M, last) -> TrailingFactor (the latest two)
 
 
 def _metis_order(A: sp.csc_matrix) -> np.ndarray:
@@ -38,6 +39,23 @@ def _metis_order(A: sp.csc_matrix) -> np.ndarray:
             _ORDERINGS.pop(next(iter(_ORDERINGS)))
         _ORDERINGS[key] = sparse.cholmod.analyze(A, mode="supernodal", ordering_method="metis").P()
     return _ORDERINGS[key]
+
+
+def shared(M, last: np.ndarray) -> "TrailingFactor":
+    """``TrailingFactor(M, last)``, kept for the latest two (M, last) of the process and
+    shared by every caller with the same values bit for bit: the realisations of a fracture
+    ensemble whose step operator does not depend on their parameters start from one factor
+    (0.4 s each at 18.8k dofs). The factor is read-only."""
+    M = sp.csc_matrix(M, dtype=np.float64)
+    digest = hashlib.sha1()
+    for part in (np.asarray(M.shape), M.indptr, M.indices, M.data, np.asarray(last, dtype=np.int64)):
+        digest.update(np.ascontiguousarray(part).tobytes())
+    key = digest.hexdigest()
+    if key not in _FACTORS:
+        if len(_FACTORS) >= 2:
+            _FACTORS.pop(next(iter(_FACTORS)))
+        _FACTORS[key] = TrailingFactor(M, last)
+    return _FACTORS[key]
 
 
 def available() -> bool:
@@ -77,6 +95,7 @@ class TrailingFactor:
             inverse, info = lapack.dtrtri(L_S, lower=1)
         if info != 0:
             raise sparse.NotPositiveDefiniteError("the trailing block of the factor is singular")
+        inverse.setflags(write=False)
         self.trailing_inverse = inverse
         self.position = np.full(n, -1, dtype=np.int64)
         self.position[last] = np.arange(len(last))

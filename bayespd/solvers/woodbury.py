@@ -89,13 +89,15 @@ class LocallyUpdated:
                 # solved many times: METIS's smaller fill makes each solve ~25 % faster than AMD's
                 self._bases[key] = _Solved(spd_factor(M0, ordering="metis"), self.shape[0], self.max_rank, self.groups)
             else:
-                self._bases[key] = _Trailing(trailing.TrailingFactor(M0, self.region), self.max_rank)
+                self._bases[key] = _Trailing(trailing.shared(M0, self.region), self.max_rank)
         base = self._bases[key]
         if self.delta is None:
             return Factor(base.solve)
         order = base.touch(np.flatnonzero(np.diff(self.delta.indptr)))
         D = b * self.delta[order][:, order]
-        lu, piv = S = sla.lu_factor(np.eye(len(order)) + D @ base.gram())
+        capacitance = D @ base.gram()
+        capacitance[np.diag_indices_from(capacitance)] += 1.0
+        lu, piv = S = sla.lu_factor(capacitance, overwrite_a=True, check_finite=False)
         flips = np.count_nonzero(piv != np.arange(len(piv)))
         if not (np.all(np.isfinite(lu)) and np.prod(np.sign(np.diag(lu))) * (-1) ** flips > 0):
             raise NotPositiveDefiniteError("the operator is not positive definite after the "
