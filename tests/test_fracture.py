@@ -124,7 +124,7 @@ def test_a_body_that_came_loose_everywhere_has_nothing_to_solve(plate):
     leaves u as it is."""
     frac = driver(plate, 1.0)
     u = 0.01 * torch.ones(plate.particles.n, 2)
-    gone = frac._factorised(torch.zeros(plate.n_bonds), u, 512, None)
+    gone = frac._factorised(torch.zeros(plate.n_bonds), u, 512, None, plate.floating_pieces())
     assert gone.A is None and len(gone.active) == 0
     step, A = frac._stepper(torch.zeros(plate.n_bonds), u, gone, exact=False)
     assert A is None and torch.equal(step(u, 0.5, torch.zeros(plate.n_bonds), 1.0, torch.Generator()), u)

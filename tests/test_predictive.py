@@ -163,25 +163,27 @@ def noisy_run(noisy_scene, tmp_path_factory):
 
 
 def test_the_store_resumes_after_a_crash(noisy_scene, noisy_run, tmp_path, monkeypatch):
-    """A crash after 3 of 6 realisations leaves 3 files (and a stale temporary one); the
-    re-run runs only the other 3 and gives the uninterrupted result bit for bit. Deleting
-    files re-runs just those; files already there are not rewritten."""
+    """A crash after 3 of 6 realisations (one a task here) leaves 3 files (and a stale
+    temporary one); the re-run runs only the other 3 and gives the uninterrupted result (one
+    batch of 6 in lock-step) bit for bit. Deleting files re-runs just those; files already
+    there are not rewritten."""
     reference, store = noisy_run
     calls = []
-    real = predictive.realise
+    real = predictive.realise_batch
 
-    def crashing(*args):
+    def crashing(scene, items, device=None):
         if len(calls) == 3:
             raise KeyboardInterrupt
-        calls.append(args[1])
-        return real(*args)
+        calls.append(items)
+        return real(scene, items, device)
 
-    monkeypatch.setattr(predictive, "realise", crashing)
+    monkeypatch.setattr(predictive, "BATCH", 1)
+    monkeypatch.setattr(predictive, "realise_batch", crashing)
     with pytest.raises(KeyboardInterrupt):
         ensemble(posterior(), noisy_scene, 4, n_mean=2, store=tmp_path, workers=1, progress=False)
     (tmp_path / "posterior-00003.npz.x.tmp").write_bytes(b"half a file")
     assert len(pending(posterior(), noisy_scene, 4, n_mean=2, store=tmp_path)) == 3
-    monkeypatch.setattr(predictive, "realise", real)
+    monkeypatch.setattr(predictive, "realise_batch", real)
     kept = {p.name: p.stat().st_mtime_ns for p in tmp_path.glob("*.npz")}
     ds = ensemble(posterior(), noisy_scene, 4, n_mean=2, store=tmp_path, workers=1, progress=False)
     assert {p.name: p.stat().st_mtime_ns for p in tmp_path.glob("*.npz") if p.name in kept} == kept

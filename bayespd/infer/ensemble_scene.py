@@ -33,6 +33,7 @@ from bayespd import sparse
 from bayespd.damage import crack_length
 from bayespd.infer.heap import keep_temporaries_on_heap
 from bayespd.solvers.fracture import check_tangent
+from bayespd.solvers.lockstep import LockStep
 
 
 @dataclass(frozen=True)
@@ -84,31 +85,60 @@ class FractureScene:
         object.__setattr__(self, "params", tuple(self.params))
 
 
+BATCH = 8  # realisations a task runs in lock-step, and the columns of every block solve they share
+
+
 def realise(scene: FractureScene, params: dict, seed: int, device=None) -> dict:
-    """One realisation: build the driver at ``params`` and run it with Brownian seed ``seed``
-    under ``torch.device(device)`` (default CPU), with one torch and one BLAS thread in every
-    BLAS library loaded (numpy's, scipy's, CHOLMOD's: the result is the same bit for bit in
-    any process or worker, and workers sharing the cores do not oversubscribe them, which
-    measured 2x slower with two workers on two cores), and large temporaries kept on the
-    heap where the worker's environment fixed glibc's thresholds (Dask's: 2.3x slower
-    otherwise, ``bayespd.infer.heap``). Returns float64 / int64 numpy arrays (see
+    """One realisation (``realise_batch`` of one: the same bits as in any batch, its solves
+    in blocks of BATCH columns as there, so alone it takes longer than its share of a batch);
+    raises what the run raised."""
+    (out,) = realise_batch(scene, [(params, seed)], device)
+    if isinstance(out, BaseException):
+        raise out
+    return out
+
+
+def realise_batch(scene: FractureScene, items: list, device=None) -> list:
+    """Realisations ``items = [(params, seed), ...]``, run in lock-step (``solvers.lockstep``,
+    BATCH columns to a solve, whatever the company: each gives the bits it gives alone), each
+    built at its ``params``, with Brownian seed ``seed``, under ``torch.device(device)``
+    (default CPU). One torch and one BLAS thread in every BLAS library loaded (numpy's,
+    scipy's, CHOLMOD's: the result is the same bit for bit in any process or worker, and
+    workers sharing the cores do not oversubscribe them, which measured 2x slower with two
+    workers on two cores), and large temporaries kept on the heap where the worker's
+    environment fixed glibc's thresholds (Dask's: 2.3x slower otherwise,
+    ``bayespd.infer.heap``). Returns, per item, float64 / int64 numpy arrays (see
     ``Realisation``) plus the derived peak load, failure load factor, first-failure time and
-    final crack length."""
+    final crack length, and its share of the batch's wall and CPU time; or the exception its
+    run raised."""
     keep_temporaries_on_heap()
     threads, factor_threads = torch.get_num_threads(), sparse.FACTOR_THREADS
     torch.set_num_threads(1)
     sparse.FACTOR_THREADS = 1  # CHOLMOD's BLAS: its sums depend on the thread count
     start, cpu = time.perf_counter(), time.process_time()
+
+    def job(params, seed):
+        def run():
+            with contextlib.nullcontext() if device in (None, "cpu") else torch.device(device):
+                return scene.build({k: float(params[k]) for k in scene.params}).run(
+                    scene.load_factors, scene.dt, seed=int(seed), hold=scene.hold,
+                    max_steps=scene.max_steps, path_threshold=scene.path_threshold, tangent=scene.tangent,
+                    max_rank=scene.max_rank, zone=scene.zone)
+        return run
+
     try:
-        with threadpool_limits(1), contextlib.nullcontext() if device in (None, "cpu") else torch.device(device):
-            run = scene.build({k: float(params[k]) for k in scene.params}).run(
-                scene.load_factors, scene.dt, seed=int(seed), hold=scene.hold,
-                max_steps=scene.max_steps, path_threshold=scene.path_threshold, tangent=scene.tangent,
-                max_rank=scene.max_rank, zone=scene.zone)
+        with threadpool_limits(1):
+            runs = LockStep(BATCH).run([job(params, seed) for params, seed in items])
     finally:
         torch.set_num_threads(threads)
         sparse.FACTOR_THREADS = factor_threads
         gc.collect()  # factors held in closures are cyclic garbage: free them before the next run
+    share = {"wall_time_s": (time.perf_counter() - start) / len(items),
+             "cpu_time_s": (time.process_time() - cpu) / len(items)}  # this process's CPU: load-independent
+    return [run if isinstance(run, BaseException) else {**_outcomes(scene, run), **share} for run in runs]
+
+
+def _outcomes(scene: FractureScene, run) -> dict:
     reaction = np.asarray(run.reaction, dtype=np.float64)
     load = (np.linalg.norm(reaction, axis=1) if scene.load_component is None
             else reaction[:, scene.load_component])
@@ -128,6 +158,4 @@ def realise(scene: FractureScene, params: dict, seed: int, device=None) -> dict:
         "first_failure_time": np.float64(np.nan if first is None else run.t[first]),
         "final_crack_length": np.float64(crack_length(run.path)),
         "device": np.str_(str(run.u.device)), "u_dtype": np.str_(str(run.u.dtype)),
-        "wall_time_s": np.float64(time.perf_counter() - start),
-        "cpu_time_s": np.float64(time.process_time() - cpu),  # this process's CPU: load-independent
     }

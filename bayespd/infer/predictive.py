@@ -11,8 +11,11 @@ aggregates the results (``ensemble_stats.aggregate``). Two ensembles are run:
 
 (d_i, b_i) depend only on (seed, i) (``numpy.random.SeedSequence([seed, i])``), so any single
 realisation can be re-run exactly (``rerun``), a larger n extends a smaller one,
-and results do not depend on where or in which order realisations run. Each result is
-written to the store as it arrives; a re-run skips finished realisations. No Pyro here.
+and results do not depend on where, in which order or in which company realisations run.
+A task runs BATCH realisations in lock-step (``ensemble_scene.realise_batch``: they share the
+half solves of one factor, bit for bit as if alone); each result is written to the store as
+its batch arrives, so a crash loses the batches in flight, and a re-run skips finished
+realisations. No Pyro here.
 
 Devices: ``device=`` runs each realisation (the scene's build and the run) under
 ``torch.device(device)``, so the tensors the driver creates live there; nothing in the
@@ -28,7 +31,7 @@ from functools import partial
 import numpy as np
 
 from .ensemble_exec import run_tasks
-from .ensemble_scene import FractureScene, realise
+from .ensemble_scene import BATCH, FractureScene, realise, realise_batch
 from .ensemble_stats import aggregate
 from .ensemble_store import EnsembleStore
 
@@ -90,13 +93,17 @@ def _plan(scene: FractureScene, draws: dict, seed: int) -> dict:
             "zone_sha256": None if scene.zone is None else hashlib.sha256(scene.zone.tobytes()).hexdigest()}
 
 
-def _task(scene, params, brownian, device):
-    """One realisation in a worker; a numerical blow-up becomes an error record (kept, and
-    counted in the results: never hidden)."""
-    try:
-        return realise(scene, params, brownian, device)
-    except RuntimeError as e:
-        return {"error": f"{type(e).__name__}: {e}"}
+def _task(scene, items, device):
+    """A batch of realisations in a worker (``realise_batch``); a numerical blow-up becomes an
+    error record (kept, and counted in the results: never hidden), any other error is raised."""
+    out = []
+    for result in realise_batch(scene, items, device):
+        if isinstance(result, RuntimeError):
+            result = {"error": f"{type(result).__name__}: {result}"}
+        elif isinstance(result, BaseException):
+            raise result
+        out.append(result)
+    return out
 
 
 def _prepare(tree, scene, n, n_mean, seed, store):
@@ -131,10 +138,17 @@ def ensemble(tree, scene: FractureScene, n: int, *, store, n_mean: int | None = 
     ``distributed.Client`` or a scheduler address; ``device``: the torch device of each
     realisation's tensors (default CPU)."""
     st, inputs = _prepare(tree, scene, n, n_mean, seed, store)
-    todo = {key: (params, brownian, device) for key, (params, _, brownian) in inputs.items()
-            if not st.done(*key)}
-    run_tasks(_task, todo, lambda key, result: st.write(*key, result), shared=scene,
-              scheduler=scheduler, workers=workers, progress=progress)
+    todo = {key: (params, brownian) for key, (params, _, brownian) in inputs.items() if not st.done(*key)}
+    keys = list(todo)
+    batches = {tuple(keys[k:k + BATCH]): ([todo[key] for key in keys[k:k + BATCH]], device)
+               for k in range(0, len(keys), BATCH)}
+
+    def write(keys, results):
+        for key, result in zip(keys, results):
+            st.write(*key, result)
+
+    run_tasks(_task, batches, write, shared=scene, scheduler=scheduler, workers=workers,
+              progress=progress, label=f"batches of {BATCH} realisations")
     ds = aggregate([(kind, i, st.read(kind, i), *inputs[kind, i]) for kind, i in inputs], scene, seed)
     st.save_dataset(ds)
     return ds

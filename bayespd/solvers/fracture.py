@@ -141,7 +141,8 @@ class StochasticFracture:
         state = law.init(body.n_bonds)
         intact = operated = law.intact(state)
         u = torch.zeros(body.particles.n, body.particles.dim)
-        base = self._factorised(intact, u, max_rank, zone)
+        pieces = body.floating_pieces()  # its own: runs in lock-step share the body
+        base = self._factorised(intact, u, max_rank, zone, pieces)
         step, A = self._stepper(intact, u, base, exact)
         rec = {k: [] for k in ("t", "lam", "reac", "broken", "length")}
         k = n = 0
@@ -162,8 +163,8 @@ class StochasticFracture:
             stale = getattr(A, "iterations", 0) > REFRESH_ITERATIONS
             if stale or float((intact - operated).abs().max()) > refactor_tol:
                 operated = intact
-                base = (self._factorised(intact, u, max_rank, zone) if stale
-                        else self._updated(base, intact, u, max_rank, zone))
+                base = (self._factorised(intact, u, max_rank, zone, pieces) if stale
+                        else self._updated(base, intact, u, max_rank, zone, pieces))
                 step, A = self._stepper(intact, u, base, exact)
             if broke:
                 phi = damage_index(intact)
@@ -181,10 +182,11 @@ class StochasticFracture:
                            crack_path(body.particles, phi, path_threshold), u, intact,
                            None if isinstance(seed, torch.Generator) else int(seed))
 
-    def _factorised(self, intact, u, max_rank: int, zone) -> "_Operated":
-        """A fresh operator at (intact, u) on the dofs still solved for."""
+    def _factorised(self, intact, u, max_rank: int, zone, pieces) -> "_Operated":
+        """A fresh operator at (intact, u) on the dofs still solved for (``pieces``: the run's
+        ``FloatingPieces``)."""
         body = self.body
-        active = body.active(intact)
+        active = body.active(intact, pieces)
         A = None
         if len(active):
             tiles = body.tiles(active, COLUMN_TILE * body.particles.h)
@@ -208,17 +210,17 @@ class StochasticFracture:
         region = np.flatnonzero(inside[active // body.particles.dim])
         return region if len(region) else None
 
-    def _updated(self, base: "_Operated", intact, u, max_rank: int, zone) -> "_Operated":
+    def _updated(self, base: "_Operated", intact, u, max_rank: int, zone, pieces) -> "_Operated":
         """The factor at ``intact``: base's, updated by the change since it was made (the
         damaged zone's tangent at u, the rest at base's u), or a fresh one when the active
         dofs changed or the change is too large for a Woodbury update."""
-        active = self.body.active(intact)
+        active = self.body.active(intact, pieces)
         if base.factored is not None and np.array_equal(active, base.active):
             change = self.body.operator_change(base.intact, intact, active, base.u, u)
             A = base.factored.changed(change)
             if A is not None:
                 return _Operated(A, base.factored, base.intact, base.u, active)
-        return self._factorised(intact, u, max_rank, zone)
+        return self._factorised(intact, u, max_rank, zone, pieces)
 
     def _stepper(self, intact, u, operated: "_Operated", exact: bool):
         """(step, A): step(u, lam, intact, dt, gen, f) -> u, one theta-step with the force at

@@ -103,14 +103,20 @@ class LoadedBody:
     def mean_displacement(self, u: torch.Tensor) -> torch.Tensor:
         return u[torch.as_tensor(self.loaded)].mean(0)
 
-    def active(self, intact) -> np.ndarray:
+    def floating_pieces(self) -> FloatingPieces:
+        """A tracker of its own of the pieces that come loose (``active``'s ``pieces``), for a
+        run that shares this body with runs interleaved with it (``solvers.lockstep``)."""
+        return FloatingPieces(self.bonds, self._fixed)
+
+    def active(self, intact, pieces: FloatingPieces | None = None) -> np.ndarray:
         """Flat indices of the dofs solved for: the free dofs, less those of pieces that hold
-        no Dirichlet particle when eps = 0 (see the module docstring)."""
+        no Dirichlet particle when eps = 0 (see the module docstring); ``pieces``: the tracker
+        to ask (default the body's own, which follows the latest caller's damage)."""
         free = self.constraints.free_dofs
         if self.eps > 0:
             return free
         floating = np.zeros(self.particles.n, dtype=bool)
-        floating[self._floating(intact)] = True
+        floating[(self._floating if pieces is None else pieces)(intact)] = True
         return free[~floating[free // self.particles.dim]]
 
     def tiles(self, dofs: np.ndarray, width: float) -> np.ndarray:

@@ -24,6 +24,7 @@ import scipy.linalg.lapack as lapack
 import scipy.sparse as sp
 
 from bayespd import sparse
+from bayespd.solvers import lockstep
 
 
 _ORDERINGS: dict = {}  # pattern digest -> METIS permutation (the latest few; METIS is deterministic)
@@ -102,10 +103,23 @@ class TrailingFactor:
         self._inverse_perm = np.argsort(self.perm)
 
     def forward(self, r: np.ndarray) -> np.ndarray:
+        return self._half(self._forward, r)
+
+    def backward(self, z: np.ndarray) -> np.ndarray:
+        return self._half(self._backward, z)
+
+    def _half(self, solve, r):
+        """One vector in a lock-step run joins the round's block (``lockstep``); else alone."""
+        member = lockstep.current()
+        if member is not None and np.ndim(r) == 1:
+            return member.solve((id(self), solve.__name__), solve, r)
+        return solve(r)
+
+    def _forward(self, r: np.ndarray) -> np.ndarray:
         with sparse.blas_threads(1):
             return self._f.solve_L(np.asarray(r)[self.perm], use_LDLt_decomposition=False)
 
-    def backward(self, z: np.ndarray) -> np.ndarray:
+    def _backward(self, z: np.ndarray) -> np.ndarray:
         with sparse.blas_threads(1):
             return self._f.solve_Lt(z, use_LDLt_decomposition=False)[self._inverse_perm]
 
