@@ -111,6 +111,8 @@ def realise_batch(scene: FractureScene, items: list, device=None) -> list:
     ``Realisation``) plus the derived peak load, failure load factor, first-failure time and
     final crack length, and its share of the batch's wall and CPU time; or the exception its
     run raised."""
+    if not items:
+        return []
     keep_temporaries_on_heap()
     threads, factor_threads = torch.get_num_threads(), sparse.FACTOR_THREADS
     torch.set_num_threads(1)
