@@ -59,6 +59,18 @@ def test_the_unit_body_runs_the_dynamics_of_every_modulus(noisy_scene):
     assert np.abs(unit.reaction - at_K.reaction).max() <= 1e-9 * scale
 
 
+@pytest.mark.parametrize("n, workers", [(200, 2), (16, 2), (16, 1), (9, 2), (3, 4), (25, 3)])
+def test_tasks_are_even_and_a_multiple_of_the_workers(n, workers):
+    """The realisations, in order, cut into tasks of at most BATCH that differ by at most one
+    in size, as many as a multiple of the workers when there are enough realisations."""
+    tasks = predictive._tasks(list(range(n)), workers)
+    sizes = [len(t) for t in tasks]
+    assert [k for t in tasks for k in t] == list(range(n))
+    assert max(sizes) <= predictive.BATCH and max(sizes) - min(sizes) <= 1
+    assert len(tasks) % workers == 0 or len(tasks) == n
+    assert len(tasks) < -(-n // predictive.BATCH) + workers
+
+
 def test_realisation_inputs_depend_only_on_seed_and_index():
     """(draw, Brownian seed) of realisation i come from (seed, i) alone; the mean ensemble
     pairs the same Brownian seed with the posterior mean; draws are uniform (2000 picks of

@@ -18,8 +18,7 @@ def run_tasks(fn, tasks: dict, on_result, *, shared=None, scheduler=None, worker
     value)`` here as each finishes (in completion order). ``shared`` is sent once per worker
     where the engine allows (Dask: scattered). An exception in a task propagates after the
     results already received were handed on."""
-    if not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers must be a positive integer, got {workers!r}")
+    check_workers(workers)
     bar = tqdm(total=len(tasks), desc=label, disable=not progress)
     try:
         if not tasks:
@@ -34,6 +33,11 @@ def run_tasks(fn, tasks: dict, on_result, *, shared=None, scheduler=None, worker
             _pool(fn, tasks, on_result, shared, workers, bar)
     finally:
         bar.close()
+
+
+def check_workers(workers) -> None:
+    if not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers must be a positive integer, got {workers!r}")
 
 
 _SHARED = {}

@@ -30,7 +30,7 @@ from functools import partial
 
 import numpy as np
 
-from .ensemble_exec import run_tasks
+from .ensemble_exec import check_workers, run_tasks
 from .ensemble_scene import BATCH, FractureScene, realise, realise_batch
 from .ensemble_stats import aggregate
 from .ensemble_store import EnsembleStore
@@ -106,6 +106,19 @@ def _task(scene, items, device):
     return out
 
 
+def _tasks(keys: list, workers: int) -> list:
+    """``keys`` cut into tasks of at most BATCH realisations, as even as they can be, and as
+    many as a multiple of ``workers`` allows: the last round of tasks keeps every worker
+    busy (25 tasks of 8 on 2 workers left one idle for a task's length)."""
+    check_workers(workers)
+    if not keys:
+        return []
+    count = -(-len(keys) // BATCH)
+    count = min(len(keys), -(-count // workers) * workers)
+    bounds = [len(keys) * t // count for t in range(count + 1)]
+    return [tuple(keys[a:b]) for a, b in zip(bounds, bounds[1:])]
+
+
 def _prepare(tree, scene, n, n_mean, seed, store):
     n_mean = n if n_mean is None else n_mean
     for name, value in (("n", n), ("n_mean", n_mean)):
@@ -135,13 +148,12 @@ def ensemble(tree, scene: FractureScene, n: int, *, store, n_mean: int | None = 
     written atomically to ``store/ensemble.nc``). ``n`` posterior realisations, ``n_mean``
     (default n) at the posterior mean; ``store``: the directory of realisation files;
     ``scheduler``: None (local: ``workers`` processes, 1 = in this process), a
-    ``distributed.Client`` or a scheduler address; ``device``: the torch device of each
-    realisation's tensors (default CPU)."""
+    ``distributed.Client`` or a scheduler address; ``workers`` also sets the tasks' count
+    to a multiple of it (``_tasks``: pass a Dask cluster's worker count for the same
+    balance); ``device``: the torch device of each realisation's tensors (default CPU)."""
     st, inputs = _prepare(tree, scene, n, n_mean, seed, store)
     todo = {key: (params, brownian) for key, (params, _, brownian) in inputs.items() if not st.done(*key)}
-    keys = list(todo)
-    batches = {tuple(keys[k:k + BATCH]): ([todo[key] for key in keys[k:k + BATCH]], device)
-               for k in range(0, len(keys), BATCH)}
+    batches = {keys: ([todo[key] for key in keys], device) for keys in _tasks(list(todo), workers)}
 
     def write(keys, results):
         for key, result in zip(keys, results):
