@@ -84,7 +84,7 @@ def main(quick: bool, realisations: int | None, side: float | None, scaling: int
     total = realisations or (12 if quick else 200)  # two thirds at posterior draws, one third at the mean
     n_mean = max(2, total // 3)
     n = total - n_mean
-    m = 2 * BATCH if scaling is None else scaling  # two tasks: one for each of two workers
+    m = 4 * BATCH if scaling is None else scaling  # four tasks: two per worker, so one long task weighs less
     load_avg = os.getloadavg()
 
     inputs = write_inputs(out / "coupon")
@@ -173,7 +173,7 @@ def options():
     parser.add_argument("--quick", action="store_true", help="30 mm plate (900 particles), 8 + 4 realisations")
     parser.add_argument("--realisations", type=int, default=None, help="realisations in all, 2/3 at posterior draws and 1/3 at the posterior mean (default 200)")
     parser.add_argument("--side", type=float, default=None, help="plate side in mm, h = 1 (default 100: 10k particles)")
-    parser.add_argument("--scaling", type=int, default=None, help=f"realisations for the Dask scaling runs (default {2 * BATCH}: two tasks; 0: skip)")
+    parser.add_argument("--scaling", type=int, default=None, help=f"realisations for the Dask scaling runs (default {4 * BATCH}: four tasks; 0: skip)")
     return vars(parser.parse_args())
 
 
