@@ -27,19 +27,31 @@ from bayespd import sparse
 from bayespd.solvers import lockstep
 
 
-_ORDERINGS: dict = {}  # pattern digest -> METIS permutation (the latest few; METIS is deterministic)
+_ORDERINGS: dict = {}  # pattern digest -> METIS permutation (the latest four; METIS is deterministic)
 _FACTORS: dict = {}  # digest of (M, last) -> TrailingFactor (the latest two)
+
+
+def _digest(*arrays) -> str:
+    digest = hashlib.sha1()
+    for a in arrays:
+        digest.update(np.ascontiguousarray(a).tobytes())
+    return digest.hexdigest()
+
+
+def _kept(cache: dict, size: int, key: str, make):
+    """``cache[key]``, made by ``make()`` when missing; the oldest entry goes beyond ``size``."""
+    if key not in cache:
+        if len(cache) >= size:
+            cache.pop(next(iter(cache)))
+        cache[key] = make()
+    return cache[key]
 
 
 def _metis_order(A: sp.csc_matrix) -> np.ndarray:
     """CHOLMOD's METIS permutation of A, kept per sparsity pattern: every realisation of a
     fracture ensemble starts from the same intact pattern (0.2 s of analysis each at 18.8k dofs)."""
-    key = (A.shape[0], hashlib.sha1(A.indptr.tobytes()).hexdigest(), hashlib.sha1(A.indices.tobytes()).hexdigest())
-    if key not in _ORDERINGS:
-        if len(_ORDERINGS) >= 4:
-            _ORDERINGS.pop(next(iter(_ORDERINGS)))
-        _ORDERINGS[key] = sparse.cholmod.analyze(A, mode="supernodal", ordering_method="metis").P()
-    return _ORDERINGS[key]
+    return _kept(_ORDERINGS, 4, _digest(np.asarray(A.shape), A.indptr, A.indices),
+                 lambda: sparse.cholmod.analyze(A, mode="supernodal", ordering_method="metis").P())
 
 
 def shared(M, last: np.ndarray) -> "TrailingFactor":
@@ -48,15 +60,9 @@ def shared(M, last: np.ndarray) -> "TrailingFactor":
     ensemble whose step operator does not depend on their parameters start from one factor
     (0.4 s each at 18.8k dofs). The factor is read-only."""
     M = sp.csc_matrix(M, dtype=np.float64)
-    digest = hashlib.sha1()
-    for part in (np.asarray(M.shape), M.indptr, M.indices, M.data, np.asarray(last, dtype=np.int64)):
-        digest.update(np.ascontiguousarray(part).tobytes())
-    key = digest.hexdigest()
-    if key not in _FACTORS:
-        if len(_FACTORS) >= 2:
-            _FACTORS.pop(next(iter(_FACTORS)))
-        _FACTORS[key] = TrailingFactor(M, last)
-    return _FACTORS[key]
+    last = np.asarray(last, dtype=np.int64)
+    return _kept(_FACTORS, 2, _digest(np.asarray(M.shape), M.indptr, M.indices, M.data, last),
+                 lambda: TrailingFactor(M, last))
 
 
 def available() -> bool:
