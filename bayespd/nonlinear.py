@@ -101,8 +101,8 @@ class NonlinearBonds:
         xi, length = self.geometry(u.dtype)
         eta = product(*self.incidence(u), u.reshape(-1)).view(self.dim, -1)
         y = eta + xi
-        r = torch.hypot(y[0], y[1]) if self.dim == 2 else torch.linalg.vector_norm(y, dim=0)
-        return y, r, (eta * (y + xi)).sum(0) / (r + length)
+        r = torch.hypot(y[0], y[1]) if self.dim == 2 else torch.sqrt(_component_sum(y * y))
+        return y, r, _component_sum(eta * (y + xi)) / (r + length)
 
     def kinematics(self, u: torch.Tensor):
         """(y, |y|, e): deformed bond vectors y = xi + u_j - u_i (n_bonds, dim), their lengths
@@ -133,6 +133,16 @@ class NonlinearBonds:
     def energy(self, u, params: dict, delta, intact=None, load=None, eps: float = 0.0):
         """Total potential energy V(u) of seed 002 eq 3."""
         return self.at(params, delta, u.dtype).energy(u, intact, load, eps)
+
+
+def _component_sum(p: torch.Tensor) -> torch.Tensor:
+    """p[0] + p[1] (+ p[2]) for p of shape (dim, n_bonds), row by row: torch's reductions over
+    a short leading dimension (``sum(0)``, ``linalg.vector_norm(dim=0)``) are 2-25x slower
+    (benchmarks/README.md, "The 3D bond kernel")."""
+    out = p[0] + p[1]
+    for row in p[2:]:
+        out = out + row
+    return out
 
 
 def product(A, AT, x: torch.Tensor) -> torch.Tensor:

@@ -1,13 +1,13 @@
 """Explicit dynamics and Langevin throughput: velocity Verlet steps per second and time per
-particle-step for a 2D bond-based (PMB, plane stress) plate with the geometrically exact force
-of ``bayespd.nonlinear`` (float64 and float32), and overdamped Langevin steps per second
-(seed 002 eq 4; Euler-Maruyama and the semi-implicit theta = 1 scheme, linearised force,
-white noise, one chain).
+particle-step for a 2D bond-based (PMB, plane stress) plate, or with ``--dim 3`` a cube, with
+the geometrically exact force of ``bayespd.nonlinear`` (float64 and float32), and overdamped
+Langevin steps per second (2D; seed 002 eq 4; Euler-Maruyama and the semi-implicit theta = 1
+scheme, linearised force, white noise, one chain).
 
 Each timing is the best of ``--repeat`` runs of ``--steps`` steps after a warm-up (the machine
 is shared: best-of-N is the least disturbed run); the load average at the start is printed.
 
-    python benchmarks/dynamics.py [--sizes 10000 100000] [--m 3] [--threads 2] [--steps 50] [--repeat 5]
+    python benchmarks/dynamics.py [--sizes 10000 100000] [--dim 2] [--m 3] [--threads 2] [--steps 50] [--repeat 5]
 """
 from __future__ import annotations
 
@@ -23,6 +23,7 @@ from timing import best
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[10000, 100000])
+    parser.add_argument("--dim", type=int, default=2, choices=[2, 3], help="plate (2) or cube (3)")
     parser.add_argument("--m", type=float, default=3.0)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--steps", type=int, default=50)
@@ -35,26 +36,26 @@ def main():
     from bayespd.solvers import Langevin, critical_time_step, linear_elastic, lumped_mass, velocity_verlet, white_noise
 
     torch.set_num_threads(args.threads)
-    print(f"threads {args.threads}, m = {args.m:g}, {args.steps} steps, best of {args.repeat}; "
+    print(f"{args.dim}D, threads {args.threads}, m = {args.m:g}, {args.steps} steps, best of {args.repeat}; "
           f"load {os.getloadavg()[0]:.2f}")
     print(f"{'particles':>9} {'bonds':>9} {'dtype':>7} {'force ms':>9} {'step ms':>8} {'steps/s':>8} {'us/pt-step':>10}")
     dt = None
     for size in args.sizes:
-        side = round(math.sqrt(size))
-        p = bp.grid_2d(float(side), float(side), 1.0)
+        side = float(round(size ** (1 / args.dim)))
+        p = bp.grid_2d(side, side, 1.0) if args.dim == 2 else bp.grid_3d(side, side, side, 1.0)
         mat = bp.BondBased(p, bp.find_bonds(p, args.m))
         kin = NonlinearBonds(mat)
         M = lumped_mass(p, 1.0)
         if dt is None:  # same h, m and material at every size: the same stable step
             dt = 0.5 * critical_time_step(linear_elastic(mat, {"K": 1.0}, args.m).matrix, M)
-        u0 = torch.zeros(p.n, 2)
+        u0 = torch.zeros(p.n, args.dim)
         u0[:, 0] = 1e-4 * torch.as_tensor(p.x[:, 1])  # a shear: every bond loaded
         for dtype in (torch.float64, torch.float32):
             coef = kin.at({"K": 1.0}, args.m, dtype)
             u = u0.to(dtype)
 
-            def force(v, coef=coef, n=p.n):
-                return coef.force(v.view(n, 2)).view(-1)
+            def force(v, coef=coef, shape=u0.shape):
+                return coef.force(v.view(shape)).view(-1)
 
             t_force = best(lambda: coef.force(u), args.repeat)
             t_run = best(lambda: velocity_verlet(force, M, u.reshape(-1), dt, args.steps), args.repeat)
