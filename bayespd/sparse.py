@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import os
 import warnings
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -52,7 +51,8 @@ class ConvergenceError(RuntimeError):
 
 # CHOLMOD settings: fill-reducing ordering ("default" tries AMD and METIS and keeps the better;
 # "amd" analyses much faster on large 2D problems but fills more; "metis", "nesdis", "best")
-# and OpenBLAS threads while factorising (None: all cores).
+# and OpenBLAS threads while factorising (None: OpenBLAS's own setting, i.e. all cores unless
+# OPENBLAS_NUM_THREADS or threadpoolctl lowered it, as each MCMC chain worker does).
 CHOLMOD_ORDERING = "default"
 FACTOR_THREADS: int | None = None
 
@@ -73,12 +73,15 @@ _OPENBLAS = _load_openblas() if cholmod is not None else None
 
 @contextlib.contextmanager
 def blas_threads(n: int | None):
-    """Run the block with ``n`` OpenBLAS threads (CHOLMOD's BLAS; None: all cores)."""
-    if _OPENBLAS is None:
+    """Run the block with ``n`` OpenBLAS threads (CHOLMOD's BLAS); None leaves the current
+    setting, so a process limited by ``threadpoolctl`` (two chain workers on two cores) keeps
+    its limit: taking every core in each worker oversubscribed them (NUTS on the demo 1.34x
+    slower, benchmarks/README.md)."""
+    if _OPENBLAS is None or n is None:
         yield
         return
     before = _OPENBLAS.openblas_get_num_threads()
-    _OPENBLAS.openblas_set_num_threads(int(n or os.cpu_count() or 1))
+    _OPENBLAS.openblas_set_num_threads(int(n))
     try:
         yield
     finally:

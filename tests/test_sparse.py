@@ -103,3 +103,18 @@ def test_unconstrained_pcg_is_not_silent():
     asm = Assembly(mat._grams())
     with pytest.raises((bp.NotPositiveDefiniteError, sparse.ConvergenceError)):
         asm.factorize(terms, "pcg", maxiter=500).solve(np.ones(asm.n))
+
+
+@pytest.mark.skipif(sparse._OPENBLAS is None, reason="CHOLMOD's OpenBLAS is not loaded")
+def test_factor_threads_keep_a_worker_limit():
+    """FACTOR_THREADS = None leaves a threadpoolctl limit in place (MCMC chain workers limit
+    every BLAS to their share of the cores); a number sets the count and restores it after."""
+    from threadpoolctl import threadpool_limits
+
+    count = sparse._OPENBLAS.openblas_get_num_threads
+    with threadpool_limits(1):
+        with sparse.blas_threads(None):
+            assert count() == 1
+        with sparse.blas_threads(2):
+            assert count() == 2
+        assert count() == 1
