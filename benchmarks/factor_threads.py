@@ -1,9 +1,10 @@
 """CHOLMOD numeric factorisation with one OpenBLAS thread against all cores, by system size.
 
 The LPS stiffness of experiments/demo.py's plate at several spacings (delta = 3 h), free dofs
-only; each size factorised with ``bayespd.sparse.FACTOR_THREADS`` = 1 and = None (all cores),
-interleaved, best of ``--repeat`` each, after the symbolic analysis. Prints dofs, factor
-entries, both times and their ratio: the table behind the default FACTOR_THREADS = None.
+only; each size factorised with ``bayespd.sparse.FACTOR_THREADS`` = 1 and = None (OpenBLAS's
+setting: all cores unless OPENBLAS_NUM_THREADS lowers it), interleaved, best of ``--repeat``
+each, after the symbolic analysis. Prints dofs, factor entries, both times and their ratio:
+the table behind the default FACTOR_THREADS = None.
 
     python benchmarks/factor_threads.py [--h 2 1 0.5 0.4 0.25] [--repeat 7]
 """
