@@ -116,7 +116,7 @@ def main():
     parser.add_argument("--chains", type=int, default=2)
     parser.add_argument("--no-nuts", action="store_true")
     parser.add_argument("--nuts-on", nargs="+", default=["demo"], choices=["demo", "5k"],
-                        help="the scenes NUTS runs on (the others extrapolate from the first)")
+                        help="the scenes NUTS runs on (the others: extrapolated from its gradients per effective draw)")
     parser.add_argument("--fixed-mass", action="store_true",
                         help="keep the Laplace mass matrix through warmup (fit's adapt_mass=False)")
     parser.add_argument("--target-accept", type=float, default=0.8)

@@ -1,5 +1,7 @@
 """Assembly and sparse solvers: the fast (particle-block) assembly against scipy's products,
 PCG against CHOLMOD/SuperLU, and the failures they must report."""
+import os
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -115,6 +117,7 @@ def test_factor_threads_keep_a_worker_limit():
     with threadpool_limits(1):
         with sparse.blas_threads(None):
             assert count() == 1
-        with sparse.blas_threads(2):
-            assert count() == 2
+        if (os.cpu_count() or 1) >= 2:  # OpenBLAS may cap the count at the cores
+            with sparse.blas_threads(2):
+                assert count() == 2
         assert count() == 1
