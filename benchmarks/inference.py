@@ -16,8 +16,8 @@ bare solve + adjoint, and NUTS wall time to bulk ESS >= 400 for every parameter.
 Scenes: ``demo`` is experiments/demo.py's plate (h = 2 mm, delta_max = 6, its DIC points and
 data); ``5k`` is the same geometry at h = 0.4 mm, delta_max = 3 h (4,7xx particles), with
 data from the model itself (a benchmark, not a result). NUTS on ``5k`` is not run by
-default (``--nuts-on demo 5k`` runs it): its time is extrapolated from the demo's gradients
-per effective draw.
+default (``--nuts-on demo 5k`` runs it; ``--nuts-on`` alone runs none): its time is
+extrapolated from the demo's gradients per effective draw.
 
     python benchmarks/inference.py [--scenes demo 5k] [--repeat 10] [--draws 300 --warmup 200 --chains 2]
                                    [--rule linear|smooth] [--nuts-on demo 5k]
@@ -114,9 +114,9 @@ def main():
     parser.add_argument("--draws", type=int, default=300)
     parser.add_argument("--warmup", type=int, default=200)
     parser.add_argument("--chains", type=int, default=2)
-    parser.add_argument("--no-nuts", action="store_true")
-    parser.add_argument("--nuts-on", nargs="+", default=["demo"], choices=["demo", "5k"],
-                        help="the scenes NUTS runs on (the others: extrapolated from its gradients per effective draw)")
+    parser.add_argument("--nuts-on", nargs="*", default=["demo"], choices=["demo", "5k"],
+                        help="the scenes NUTS runs on, none for gradients only (the others: "
+                             "extrapolated from its gradients per effective draw)")
     parser.add_argument("--fixed-mass", action="store_true",
                         help="keep the Laplace mass matrix through warmup (fit's adapt_mass=False)")
     parser.add_argument("--target-accept", type=float, default=0.8)
@@ -132,7 +132,7 @@ def main():
         print(f"{name}: {scene.particles.n} particles, {len(y)} points, {scene.material.bonds.n} bonds; "
               f"gradient: bare {1e3 * t_bare:.1f} ms ({1 / t_bare:.0f}/s), in Pyro {1e3 * t_pyro:.1f} ms "
               f"({1 / t_pyro:.0f}/s); Pyro overhead {100 * (1 - t_bare / t_pyro):.0f} % of each gradient", flush=True)
-        if name in args.nuts_on and not args.no_nuts:
+        if name in args.nuts_on:
             start = time.perf_counter()
             nuts = nuts_to_ess(model, y, scene, args.draws, args.warmup, args.chains, not args.fixed_mass,
                                args.target_accept)
