@@ -191,10 +191,11 @@ class _Force:
         return components or self.kin.components(u), intact
 
     def _scatter(self, y, t_over_r, like):
-        """Bond force t y/|y| pulls i towards j and j towards i: f = -D^T (t y / |y|)."""
-        fb = (y * -t_over_r).reshape(-1)
+        """Bond force t y/|y| pulls i towards j and j towards i: f = -D^T (t y / |y|) (negated
+        after the sum, on the particles' values: the same bits, one pass over the bonds less)."""
+        fb = (y * t_over_r).reshape(-1)
         D, DT = self.kin.incidence(fb)
-        return product(DT, D, fb).view(like.shape)
+        return -product(DT, D, fb).view(like.shape)
 
     def energy(self, u, intact=None, load=None, eps: float = 0.0):
         """Strain energy - p . u + (eps/2) u . u (seed 002 eq 3)."""

@@ -140,6 +140,7 @@ class StochasticFracture:
         damage_index = DamageIndex(body.particles, body.bonds)
         state = law.init(body.n_bonds)
         intact = operated = law.intact(state)
+        broken = intact < 0.5
         u = torch.zeros(body.particles.n, body.particles.dim)
         pieces = body.floating_pieces()  # its own: runs in lock-step share the body
         base = self._factorised(intact, u, max_rank, zone, pieces)
@@ -158,8 +159,9 @@ class StochasticFracture:
                     "reduce dt, or the noise (eta), or give the body eps > 0")
             bonds_now = body.kinematics.components(u)  # one gather for the stretch and f_int
             state = law.update(state, body.kinematics.stretch(u, bonds_now), dt)
-            intact, before = law.intact(state), intact
-            broke = not torch.equal(intact < 0.5, before < 0.5)
+            intact = law.intact(state)
+            broken, was_broken = intact < 0.5, broken
+            broke = not torch.equal(broken, was_broken)
             stale = getattr(A, "iterations", 0) > REFRESH_ITERATIONS
             if stale or float((intact - operated).abs().max()) > refactor_tol:
                 operated = intact
@@ -173,7 +175,7 @@ class StochasticFracture:
             rec["lam"].append(lams[k])
             f = body.internal(u, intact, bonds_now)
             rec["reac"].append(self.reaction_scale * body.reaction(u, intact, f).numpy())
-            rec["broken"].append(int((intact < 0.5).sum()))
+            rec["broken"].append(int(broken.sum()))
             rec["length"].append(length)
             k += not (hold and broke)
         phi = damage_index(intact)

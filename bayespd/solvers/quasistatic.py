@@ -183,10 +183,10 @@ class LoadedBody:
             sub, entries, _ = self._restricted(active)
             return sub.matrix(self._tangent(after, u)[entries] - self._tangent(before, u)[entries]).tocsr()
         i, j = self.bonds.i, self.bonds.j
-        changed = torch.nonzero(after != before).reshape(-1).numpy()
+        changed = np.flatnonzero(after.numpy() != before.numpy())
         ends = np.zeros(self.particles.n, dtype=bool)
         ends[i[changed]] = ends[j[changed]] = True
-        bonds = np.flatnonzero(ends[i] & ends[j])
+        bonds = self._bonds_among(ends)
         H = (self._bond_hessians(u_after if u_after is not None else u, bonds) * after.numpy()[bonds, None, None]
              - self._bond_hessians(u, bonds) * before.numpy()[bonds, None, None])
         pos = self._blocks[bonds].reshape(-1)
@@ -196,6 +196,23 @@ class LoadedBody:
         keep = (rows >= 0) & (cols >= 0)
         values = np.stack([H, H, -H, -H], 1).reshape(-1)
         return sp.csr_matrix((values[keep], (rows[keep], cols[keep])), shape=(len(active), len(active)))
+
+    def _bonds_among(self, mask: np.ndarray) -> np.ndarray:
+        """The bonds (sorted) whose two end particles are both in ``mask``: read from the
+        bonds of the masked particles (by their first end i), not from a pass over all bonds."""
+        indptr, by_first = self._bonds_by_first
+        p = np.flatnonzero(mask)
+        counts = indptr[p + 1] - indptr[p]
+        offsets = np.repeat(indptr[p] - np.cumsum(counts) + counts, counts)
+        candidates = by_first[offsets + np.arange(counts.sum())]
+        return np.sort(candidates[mask[self.bonds.j[candidates]]])
+
+    @cached_property
+    def _bonds_by_first(self) -> tuple[np.ndarray, np.ndarray]:
+        """(indptr, bonds): the bonds whose first end i is particle p are bonds[indptr[p]:indptr[p + 1]]."""
+        i = self.bonds.i
+        indptr = np.concatenate([[0], np.cumsum(np.bincount(i, minlength=self.particles.n))])
+        return indptr, np.argsort(i, kind="stable")
 
     def _tangent(self, intact, u) -> np.ndarray:
         """Values of T on the material's pattern."""
