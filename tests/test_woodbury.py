@@ -63,10 +63,13 @@ def test_updated_factor_equals_a_fresh_one(plate):
     assert A0.changed(plate.operator_change(torch.ones(plate.n_bonds), broken(plate, centre), active)) is None
 
 
-def test_an_indefinite_change_is_refused():
-    """Subtracting twice a diagonal entry's worth from M0 = I + A (one negative eigenvalue)."""
+@pytest.mark.parametrize("rows", [[1], [0, 3]])
+def test_an_indefinite_change_is_refused(rows):
+    """Subtracting 20 from diagonal entries of M0 = I + A (<= 7): one or two negative
+    eigenvalues (two keep det(M) > 0, which a determinant's sign would let pass)."""
     A = sp.diags([4.0, 3.0, 2.0, 5.0]) + sp.diags([1.0, 1.0, 1.0], 1) + sp.diags([1.0, 1.0, 1.0], -1)
-    delta = sp.csr_matrix(([-20.0], ([1], [1])), shape=(4, 4))
+    delta = sp.csr_matrix(([-20.0] * len(rows), (rows, rows)), shape=(4, 4))
+    assert np.sum(np.linalg.eigvalsh(np.eye(4) + (A + delta).toarray()) < 0) == len(rows)
     with pytest.raises(NotPositiveDefiniteError, match="not positive definite"):
         LocallyUpdated(A).changed(delta).shifted_factor(np.ones(4), 1.0)
     ok = LocallyUpdated(A).changed(-0.5 * delta).shifted_factor(np.ones(4), 1.0).solve(np.ones(4))
@@ -106,6 +109,16 @@ def test_change_matches_the_assembled_operators(material):
     change = b.operator_change(before, after, active, u)
     direct = b.operator(after, active, u) - b.operator(before, active, u)
     assert abs(change - direct).max() <= 1e-12 * abs(direct).max()
+
+
+def test_change_takes_in_every_bond_between_the_changed_ends(plate):
+    """The bonds whose tangent a change re-evaluates are read from the changed ends' own
+    bonds: the same sorted set as a pass over every bond, for sparse to dense sets of ends."""
+    rng = np.random.default_rng(0)
+    i, j = plate.bonds.i, plate.bonds.j
+    for fraction in (0.0, 0.02, 0.2, 0.6, 1.0):
+        ends = rng.random(plate.particles.n) < fraction
+        assert np.array_equal(plate._bonds_among(ends), np.flatnonzero(ends[i] & ends[j]))
 
 
 def test_bond_based_tangent_is_the_hessian_in_tension(plate):
@@ -246,6 +259,25 @@ def test_region_update_equals_a_fresh_factor(plate):
         assert np.abs(got.solve(rhs) - shifted_factor(plain.changed(change), s, b).solve(rhs)).max() <= 1e-10 * np.abs(exact).max()
     far = np.flatnonzero((near[0] == 2.5) & (near[1] == 2.5))[:1]  # on the lowest free row
     assert A0.changed(plate.operator_change(intact0, broken(plate, far), active)) is None
+
+
+@pytest.mark.parametrize("zone", [False, pytest.param(True, marks=needs_cholmod)])
+def test_many_small_changes_keep_the_update_exact(plate, zone):
+    """Bonds breaking one at a time along the centre line, 40 changes: W_R^-1, bordered by a
+    row or two at each, keeps the updated solve equal to a fresh factorisation to 1e-10."""
+    intact0 = torch.ones(plate.n_bonds)
+    active = plate.active(intact0)
+    s, b = np.full(len(active), 2.0), 1e-3
+    y = plate.particles.x[:, 1]
+    centre = np.flatnonzero((np.abs(y[plate.bonds.i] - SIDE / 2) < 1) & (np.abs(y[plate.bonds.j] - SIDE / 2) < 1))
+    region = np.flatnonzero(np.abs(y[active // 2] - SIDE / 2) < 1) if zone else None
+    A0 = LocallyUpdated(plate.operator(intact0, active), max_rank=200, region=region)
+    rhs = np.random.default_rng(1).standard_normal(len(active))
+    for n in range(1, 41):
+        intact = broken(plate, centre[:n])
+        got = shifted_factor(A0.changed(plate.operator_change(intact0, intact, active)), s, b).solve(rhs)
+    exact = spd_factor(sp.diags(s) + b * plate.operator(intact, active)).solve(rhs)
+    assert np.abs(got - exact).max() <= 1e-10 * np.abs(exact).max()
 
 
 @needs_cholmod
