@@ -142,7 +142,9 @@ class _Columns:
         if self.k > old:
             W = self.gram()
             F = self._inverse @ W[:old, old:]
-            S = _cholesky(W[old:, old:] - W[:old, old:].T @ F, "the Woodbury columns are linearly dependent")
+            S = _cholesky(W[old:, old:] - W[:old, old:].T @ F,
+                          "the Woodbury columns of the new rows are numerically dependent (W_R singular): "
+                          "factorise the operator afresh")
             S_inv = sla.cho_solve(S, np.eye(self.k - old), check_finite=False)
             FS = F @ S_inv
             grown = np.empty((self.k, self.k))
