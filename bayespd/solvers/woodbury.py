@@ -125,8 +125,8 @@ def _cholesky(X: np.ndarray, message: str):
 class _Columns:
     """The columns of rows touched so far, as rows of a buffer in the order the rows were
     first touched (allocated as they come, up to ``capacity`` rows, then doubling);
-    ``_new(rows)`` makes the columns of new rows, (len(rows), width); ``gram()`` is W_R in
-    ``order``, and ``gram_inverse()`` its inverse, bordered as rows join."""
+    ``_new(rows)`` makes the columns of new rows, (len(rows), width); ``gram_inverse()`` is
+    W_R^-1 in ``order``, bordered as rows join with the blocks ``_bordering(old)`` of W_R."""
 
     def __init__(self, width: int, capacity: int):
         self.width, self.k, self.capacity = width, 0, max(int(capacity), 16)
@@ -140,9 +140,9 @@ class _Columns:
         -F S^-1], [-S^-1 F^T, S^-1]], F = A^-1 B."""
         old = len(self._inverse)
         if self.k > old:
-            W = self.gram()
-            F = self._inverse @ W[:old, old:]
-            S = _cholesky(W[old:, old:] - W[:old, old:].T @ F,
+            B, C = self._bordering(old)
+            F = self._inverse @ B
+            S = _cholesky(C - B.T @ F,
                           "the Woodbury columns of the new rows are numerically dependent (W_R singular): "
                           "factorise the operator afresh")
             S_inv = sla.cho_solve(S, np.eye(self.k - old), check_finite=False)
@@ -185,9 +185,10 @@ class _Solved(_Columns):
         self.solve = factor.solve
         self._ready = {}
 
-    def gram(self) -> np.ndarray:
-        """W_R = E^T P^-1 E for the rows touched so far, in ``order``."""
-        return self.columns[self.order]
+    def _bordering(self, old: int) -> tuple[np.ndarray, np.ndarray]:
+        """W_R = E^T P^-1 E between the first ``old`` rows in ``order`` and the rest, and among the rest."""
+        W, first, rest = self.columns, self.order[:old], self.order[old:]
+        return W[first, old:], W[rest, old:]
 
     def corrected(self, correct):
         W, order = self.columns, self.order
@@ -223,18 +224,12 @@ class _Trailing(_Columns):
     def __init__(self, factor: trailing.TrailingFactor, capacity: int):
         super().__init__(len(factor.trailing_inverse), capacity)
         self.factor, self.solve = factor, factor.solve
-        self._gram = np.zeros((0, 0))
 
-    def gram(self) -> np.ndarray:
-        """W_R = G^T G for the rows touched so far, in ``order`` (extended by the new columns only)."""
-        G, old = self.columns, len(self._gram)
-        if self.k > old:
-            grown = np.empty((self.k, self.k))
-            grown[:old, :old] = self._gram
-            grown[old:] = G[:, old:].T @ G
-            grown[:old, old:] = grown[old:, :old].T
-            self._gram = grown
-        return self._gram
+    def _bordering(self, old: int) -> tuple[np.ndarray, np.ndarray]:
+        """W_R = G^T G between the first ``old`` rows in ``order`` and the rest, and among the rest."""
+        G = self.columns
+        rows = G[:, old:].T @ G
+        return rows[:, :old].T, rows[:, old:]
 
     def corrected(self, correct):
         G, m = self.columns, self.factor.n_first
