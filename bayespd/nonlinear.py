@@ -37,11 +37,13 @@ explicit dynamics (``at(..., dtype=torch.float32)``; float64 is the default).
 from __future__ import annotations
 
 import warnings
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
 import torch
 
+from bayespd import bond_loops
 from bayespd.materials import _C_DEV, LPS, BondBased
 
 M_FLOOR = 1e-9
@@ -72,6 +74,11 @@ class NonlinearBonds:
                 raise ValueError(f"u must be float64 (default) or float32, got {dtype}")
             self._geometry[dtype] = (self.xi.to(dtype).T.contiguous(), self.length.to(dtype))
         return self._geometry[dtype]
+
+    @cached_property
+    def _ends(self) -> tuple[np.ndarray, np.ndarray]:
+        """(i, j) as int32 numpy arrays, for ``bond_loops``."""
+        return self.i.numpy().astype(np.int32), self.j.numpy().astype(np.int32)
 
     def incidence(self, like: torch.Tensor) -> tuple:
         """(D, D^T) for tensors like ``like`` (its dtype and device): row a n_bonds + b of D
@@ -104,6 +111,12 @@ class NonlinearBonds:
         r = torch.hypot(y[0], y[1]) if self.dim == 2 else torch.sqrt(_component_sum(y * y))
         return y, r, _component_sum(eta * (y + xi)) / (r + length)
 
+    def shared_components(self, u: torch.Tensor):
+        """``components(u)`` to hand to both ``stretch`` and ``force`` at one u, or None where
+        ``bond_loops`` evaluates each from u itself, at less cost (PMB, CPU, float64)."""
+        compiled = isinstance(self.material, BondBased) and bond_loops.usable(u)
+        return None if compiled else self.components(u)
+
     def kinematics(self, u: torch.Tensor):
         """(y, |y|, e): deformed bond vectors y = xi + u_j - u_i (n_bonds, dim), their lengths
         and the extensions e = |y| - |xi|."""
@@ -117,6 +130,8 @@ class NonlinearBonds:
     def stretch(self, u: torch.Tensor, components=None) -> torch.Tensor:
         """s = (|xi + eta| - |xi|) / |xi| per bond for u of shape (N, dim) (``components``:
         those of u, when known)."""
+        if components is None and bond_loops.usable(u):
+            return bond_loops.stretch(u, self._ends, *self.geometry(u.dtype))
         return (components or self.components(u))[2] / self.geometry(u.dtype)[1]
 
     def at(self, params: dict, delta, dtype=torch.float64):
@@ -181,14 +196,13 @@ class _Force:
         self.moduli = kin.material._moduli(params)
         self.factor = kin.material._bond_correction(self.moduli, params, delta)
 
-    def _kinematics(self, u, intact, components=None):
-        """kin.components(u) (unless given) and the intact fractions in this dtype; refuses a
-        u of another dtype (the coefficients were converted once, in ``NonlinearBonds.at``)."""
+    def _intact(self, u, intact):
+        """The intact fractions in this dtype; refuses a u of another dtype (the coefficients
+        were converted once, in ``NonlinearBonds.at``)."""
         if u.dtype != self.dtype:
             raise ValueError(f"u is {u.dtype} but these coefficients are {self.dtype}: "
                              f"use NonlinearBonds.at(params, delta, dtype={u.dtype})")
-        intact = None if intact is None else torch.as_tensor(intact).to(self.dtype)
-        return components or self.kin.components(u), intact
+        return None if intact is None else torch.as_tensor(intact).to(self.dtype)
 
     def _scatter(self, y, t_over_r, like):
         """Bond force t y/|y| pulls i towards j and j towards i: f = -D^T (t y / |y|) (negated
@@ -213,12 +227,16 @@ class PMBForce(_Force):
         self.k = (self.factor * kin.material._bond_stiffness(self.moduli, params, delta)).to(dtype)
 
     def force(self, u, intact=None, components=None):
-        (y, r, e), intact = self._kinematics(u, intact, components)
+        intact = self._intact(u, intact)
+        if components is None and bond_loops.usable(u, self.k, intact):
+            return bond_loops.pmb_force(u, self.kin._ends, *self.kin.geometry(u.dtype), self.k, intact)
+        y, r, e = components or self.kin.components(u)
         k = self.k if intact is None else self.k * intact
         return self._scatter(y, k * e / r, u)
 
     def strain_energy(self, u, intact=None):
-        (_, _, e), intact = self._kinematics(u, intact)
+        intact = self._intact(u, intact)
+        e = self.kin.components(u)[2]
         k = self.k if intact is None else self.k * intact
         return 0.5 * (k * e * e).sum()
 
@@ -248,7 +266,8 @@ class LPSForce(_Force):
     def _state(self, u, intact, components=None):
         """(y, |y|, mu e, e, m, theta, mu); mu e stands for e when there is no damage."""
         kin = self.kin
-        (y, r, e), intact = self._kinematics(u, intact, components)
+        intact = self._intact(u, intact)
+        y, r, e = components or kin.components(u)
         if intact is None:
             me, m = e, self.m0
         else:

@@ -1,0 +1,108 @@
+"""Compiled loops over the bonds for the CPU forward path of ``bayespd.nonlinear`` (numba,
+optional: ``pip install bayespd[fast]``).
+
+torch evaluates the stretch and the PMB force of seed 002 eq 1-2 as a dozen passes over the
+bond arrays, each writing a temporary; a loop reads each bond once and writes only its
+result: ``stretch`` (s = e / |xi|) and ``pmb_force`` (f = -D^T (t y / |y|), t = k mu e),
+each from u (the gather of u_j - u_i is cheaper than reading back stored components). They
+do the torch path's operations in its order (e = eta . (y + xi) / (|y| + |xi|),
+``nonlinear``), with a correctly rounded |y| where torch's sqrt and hypot are off by an ulp
+now and then: they agree with it to a few ulp (tests/test_nonlinear.py). The torch path
+stays for what they do not cover: gradients, other devices and dtypes (``usable``), LPS.
+For the 10k-particle plate a step's stretch and force take ~3 ms instead of 10 on one core
+(benchmarks/README.md, "Compiled bond loops").
+
+Set ENABLED = False to use the torch path everywhere (the tests compare the two).
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+try:
+    import numba
+except ImportError:  # the optional dependency is absent: torch does the work
+    numba = None
+
+ENABLED = True
+
+
+def usable(*tensors) -> bool:
+    """True when the loops can stand in for torch on these tensors (None: absent, ignored):
+    numba is installed and ENABLED, and they are float64 on the CPU with no gradient to record."""
+    if numba is None or not ENABLED:
+        return False
+    grad = torch.is_grad_enabled()
+    return all(t is None or (t.device.type == "cpu" and t.dtype == torch.float64 and not (grad and t.requires_grad))
+               for t in map(_tensor, tensors))
+
+
+def _tensor(t):
+    return t if t is None or isinstance(t, torch.Tensor) else torch.as_tensor(t)
+
+
+def stretch(u: torch.Tensor, ends: tuple, xi: torch.Tensor, length: torch.Tensor) -> torch.Tensor:
+    """s (n_bonds,) of the bonds ``ends`` = (i, j) (int32) with xi (dim, n_bonds) and |xi|."""
+    s = np.empty(len(length))
+    _stretch(_BOND[u.shape[1]], u.detach().numpy(), *ends, xi.numpy(), length.numpy(), s)
+    return torch.from_numpy(s)
+
+
+def pmb_force(u: torch.Tensor, ends: tuple, xi: torch.Tensor, length: torch.Tensor, k: torch.Tensor,
+              intact: torch.Tensor | None) -> torch.Tensor:
+    """f (N, dim) of PMB bonds of stiffness k (n_bonds,) at the intact fractions (None: all 1)."""
+    f = np.zeros(tuple(u.shape))
+    mu = np.ones(1) if intact is None else intact.detach().numpy()
+    k = np.broadcast_to(k.detach().numpy(), length.shape)
+    _pmb_force(_BOND[u.shape[1]], u.detach().numpy(), *ends, xi.numpy(), length.numpy(), k, mu,
+               intact is not None, f)
+    return torch.from_numpy(f)
+
+
+def _compiled(fn):
+    return fn if numba is None else numba.njit(cache=True, nogil=True, inline="always")(fn)
+
+
+# (y, |y|, e) of bond b from particle p to q, y a tuple: the components written out, which the
+# compiler keeps in registers (a loop over an array of them: 1.5x slower; a branch on the
+# dimension inside one function: 8x slower). The kernels take one as their first argument.
+
+@_compiled
+def _bond2(u, p, q, xi, length, b):  # pragma: no cover (compiled)
+    eta0, eta1 = u[q, 0] - u[p, 0], u[q, 1] - u[p, 1]
+    y0, y1 = eta0 + xi[0, b], eta1 + xi[1, b]
+    r = np.sqrt(y0 * y0 + y1 * y1)
+    return (y0, y1), r, (eta0 * (y0 + xi[0, b]) + eta1 * (y1 + xi[1, b])) / (r + length[b])
+
+
+@_compiled
+def _bond3(u, p, q, xi, length, b):  # pragma: no cover (compiled)
+    eta0, eta1, eta2 = u[q, 0] - u[p, 0], u[q, 1] - u[p, 1], u[q, 2] - u[p, 2]
+    y0, y1, y2 = eta0 + xi[0, b], eta1 + xi[1, b], eta2 + xi[2, b]
+    r = np.sqrt(y0 * y0 + y1 * y1 + y2 * y2)
+    num = eta0 * (y0 + xi[0, b]) + eta1 * (y1 + xi[1, b]) + eta2 * (y2 + xi[2, b])
+    return (y0, y1, y2), r, num / (r + length[b])
+
+
+_BOND = {2: _bond2, 3: _bond3}
+
+
+@_compiled
+def _stretch(bond, u, i, j, xi, length, s):  # pragma: no cover (compiled)
+    for b in range(i.shape[0]):
+        s[b] = bond(u, i[b], j[b], xi, length, b)[2] / length[b]
+
+
+@_compiled
+def _pmb_force(bond, u, i, j, xi, length, k, mu, damaged, f):  # pragma: no cover (compiled)
+    for b in range(i.shape[0]):
+        kb = k[b] * mu[b] if damaged else k[b]
+        if kb == 0.0:
+            continue  # a broken bond: its force is exactly zero
+        p, q = i[b], j[b]
+        y, r, e = bond(u, p, q, xi, length, b)
+        t = kb * e / r
+        for a in range(len(y)):
+            fb = y[a] * t
+            f[p, a] += fb
+            f[q, a] -= fb
