@@ -12,9 +12,12 @@ stays for what they do not cover: gradients, other devices and dtypes (``usable`
 For the 10k-particle plate a step's stretch and force take ~3 ms instead of 10 on one core
 (benchmarks/README.md, "Compiled bond loops").
 
-Set ENABLED = False to use the torch path everywhere (the tests compare the two).
+ENABLED = False (or BAYESPD_BOND_LOOPS=0 in the environment) uses the torch path everywhere
+(the tests and benchmarks compare the two).
 """
 from __future__ import annotations
+
+import os
 
 import numpy as np
 import torch
@@ -24,7 +27,7 @@ try:
 except ImportError:  # the optional dependency is absent: torch does the work
     numba = None
 
-ENABLED = True
+ENABLED = os.environ.get("BAYESPD_BOND_LOOPS", "1") != "0"
 
 
 def usable(*tensors) -> bool:
