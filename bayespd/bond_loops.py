@@ -7,10 +7,11 @@ result: ``stretch`` (s = e / |xi|) and ``pmb_force`` (f = -D^T (t y / |y|), t = 
 each from u (the gather of u_j - u_i is cheaper than reading back stored components). They
 do the torch path's operations in its order (e = eta . (y + xi) / (|y| + |xi|),
 ``nonlinear``), with a correctly rounded |y| where torch's sqrt and hypot are off by an ulp
-now and then: they agree with it to a few ulp (tests/test_nonlinear.py). The torch path
-stays for what they do not cover: gradients, other devices and dtypes (``usable``), LPS.
-For the 10k-particle plate a step's stretch and force take ~3 ms instead of 10 on one core
-(benchmarks/README.md, "Compiled bond loops").
+now and then: they agree with it to a few ulp, in float64 and float32 (tests/test_nonlinear.py).
+The torch path stays for what they do not cover (``usable``): gradients, other devices, LPS.
+For the 10k-particle plate a step's stretch and force take ~3 ms instead of 10 on one core;
+the force of a 64k-particle 3D cube 93 ms instead of 843 (benchmarks/README.md, "Compiled
+bond loops").
 
 ENABLED = False (or BAYESPD_BOND_LOOPS=0 in the environment) uses the torch path everywhere
 (the tests and benchmarks compare the two).
@@ -32,12 +33,14 @@ ENABLED = os.environ.get("BAYESPD_BOND_LOOPS", "1") != "0"
 
 def usable(*tensors) -> bool:
     """True when the loops can stand in for torch on these tensors (None: absent, ignored):
-    numba is installed and ENABLED, and they are float64 on the CPU with no gradient to record."""
+    numba is installed and ENABLED, and they are on the CPU, all float64 or all float32,
+    with no gradient to record."""
     if numba is None or not ENABLED:
         return False
+    given = [t for t in map(_tensor, tensors) if t is not None]
     grad = torch.is_grad_enabled()
-    return all(t is None or (t.device.type == "cpu" and t.dtype == torch.float64 and not (grad and t.requires_grad))
-               for t in map(_tensor, tensors))
+    return ({t.dtype for t in given} in ({torch.float64}, {torch.float32})
+            and all(t.device.type == "cpu" and not (grad and t.requires_grad) for t in given))
 
 
 def _tensor(t):
@@ -46,7 +49,7 @@ def _tensor(t):
 
 def stretch(u: torch.Tensor, ends: tuple, xi: torch.Tensor, length: torch.Tensor) -> torch.Tensor:
     """s (n_bonds,) of the bonds ``ends`` = (i, j) (int32) with xi (dim, n_bonds) and |xi|."""
-    s = np.empty(len(length))
+    s = np.empty(len(length), dtype=length.numpy().dtype)
     _stretch(_BOND[u.shape[1]], u.detach().numpy(), *ends, xi.numpy(), length.numpy(), s)
     return torch.from_numpy(s)
 
@@ -54,8 +57,8 @@ def stretch(u: torch.Tensor, ends: tuple, xi: torch.Tensor, length: torch.Tensor
 def pmb_force(u: torch.Tensor, ends: tuple, xi: torch.Tensor, length: torch.Tensor, k: torch.Tensor,
               intact: torch.Tensor | None) -> torch.Tensor:
     """f (N, dim) of PMB bonds of stiffness k (n_bonds,) at the intact fractions (None: all 1)."""
-    f = np.zeros(tuple(u.shape))
-    mu = np.ones(1) if intact is None else intact.detach().numpy()
+    f = np.zeros(tuple(u.shape), dtype=u.detach().numpy().dtype)
+    mu = np.ones(1, dtype=f.dtype) if intact is None else intact.detach().numpy()
     k = np.broadcast_to(k.detach().numpy(), length.shape)
     _pmb_force(_BOND[u.shape[1]], u.detach().numpy(), *ends, xi.numpy(), length.numpy(), k, mu,
                intact is not None, f)

@@ -26,7 +26,9 @@ the signed bond-dof incidence D (eta = D u, rows (component, bond)), a per-bond 
 with D^T (f = -D^T (t y / |y|)); it is differentiable (twice) in u, the moduli, the horizon and
 mu. The two CSR products replace four gathers and a scatter of the bond arrays: one step's
 kinematics, stretch and force of the notched 10k-particle plate take 5.0 ms instead of 7.0
-(one thread; benchmarks/README.md, "A crack zone ordered last").
+(one thread; benchmarks/README.md, "A crack zone ordered last"). On the CPU, with no gradient
+to record, the stretch and the PMB force are one compiled loop each (``bond_loops``, numba,
+optional: ~3 ms for both on that plate).
 
 Rounding: the extension is evaluated as e = eta . (xi + y) / (|y| + |xi|) (= |y| - |xi|,
 since |y|^2 - |xi|^2 = eta . (y + xi)), which carries a relative rounding error of a few

@@ -148,11 +148,12 @@ def test_shared_components_give_the_same_force_and_stretch(plate, cls, monkeypat
     assert torch.equal(nl.stretch(u, parts), nl.stretch(u))
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("dim", [2, 3])
-def test_compiled_loops_match_the_torch_path(plate, dim, monkeypatch):
+def test_compiled_loops_match_the_torch_path(plate, dim, dtype, monkeypatch):
     """``bond_loops`` does torch's operations in torch's order, with a correctly rounded |y|
     where torch's is off by an ulp now and then: the stretch and the PMB force agree with
-    torch's to a few ulp; a broken bond's end feels exactly nothing."""
+    torch's to a few ulp of the dtype; a broken bond's end feels exactly nothing."""
     pytest.importorskip("numba")
     from bayespd import bond_loops
 
@@ -162,15 +163,18 @@ def test_compiled_loops_match_the_torch_path(plate, dim, monkeypatch):
         p = bp.grid_3d(4.0, 4.0, 3.0, 1.0)
         mat, params = bp.BondBased(p, bp.find_bonds(p, 2.0)), {"K": torch.linspace(2.0, 3.0, p.n), "G": 1.2}
         nl, delta = NonlinearBonds(mat), 1.8
-    u, mu = random_u(mat.particles.n, 0.05, dim=dim), damage_state(mat.bonds, mat.particles)
+    u = random_u(mat.particles.n, 0.05, dim=dim).to(dtype)
+    mu = damage_state(mat.bonds, mat.particles).to(dtype)
     assert bond_loops.usable(u, None) and not bond_loops.usable(u.clone().requires_grad_())
+    assert not bond_loops.usable(u, u.double() if dtype == torch.float32 else u.float())
     assert nl.shared_components(u) is None
-    forces, results = nl.at(params, delta), {}
+    forces, results = nl.at(params, delta, dtype), {}
     for enabled in (True, False):
         monkeypatch.setattr(bond_loops, "ENABLED", enabled)
         results[enabled] = nl.stretch(u), forces.force(u, mu), forces.force(u)
     (s, f, f_intact), (s0, f0, f0_intact) = results[True], results[False]
-    ulp = torch.finfo(torch.float64).eps
+    assert s.dtype == f.dtype == dtype
+    ulp = torch.finfo(dtype).eps
     assert float((s - s0).abs().max() / s0.abs().max()) <= 8 * ulp
     for got, expected in ((f, f0), (f_intact, f0_intact)):
         assert float((got - expected).abs().max() / expected.abs().max()) <= 64 * ulp
