@@ -115,7 +115,7 @@ class NonlinearBonds:
 
     def shared_components(self, u: torch.Tensor):
         """``components(u)`` to hand to both ``stretch`` and ``force`` at one u, or None where
-        ``bond_loops`` evaluates each from u itself, at less cost (PMB, CPU, float64)."""
+        ``bond_loops`` evaluates each from u itself, at less cost (PMB on the CPU, no gradient)."""
         compiled = isinstance(self.material, BondBased) and bond_loops.usable(u)
         return None if compiled else self.components(u)
 
