@@ -66,12 +66,16 @@ def pmb_force(u: torch.Tensor, ends: tuple, xi: torch.Tensor, length: torch.Tens
 
 
 def _compiled(fn):
-    return fn if numba is None else numba.njit(cache=True, nogil=True, inline="always")(fn)
+    """Compiled on first use in each process (~0.6 s for the two kernels of one dimension and
+    dtype), not cached on disk: a kernel that takes a compiled function as its argument misses
+    numba's cache in every new process and would add a file to it each time."""
+    return fn if numba is None else numba.njit(nogil=True, inline="always")(fn)
 
 
 # (y, |y|, e) of bond b from particle p to q, y a tuple: the components written out, which the
 # compiler keeps in registers (a loop over an array of them: 1.5x slower; a branch on the
-# dimension inside one function: 8x slower). The kernels take one as their first argument.
+# dimension inside one function: 8x slower). The kernels take one as their first argument
+# and are compiled for it.
 
 @_compiled
 def _bond2(u, p, q, xi, length, b):  # pragma: no cover (compiled)
