@@ -66,7 +66,7 @@ def pmb_force(u: torch.Tensor, ends: tuple, xi: torch.Tensor, length: torch.Tens
 
 
 def _compiled(fn):
-    """Compiled on first use in each process (~0.6 s for the two kernels of one dimension and
+    """Compiled on first use in each process (~0.7 s for the two kernels of one dimension and
     dtype), not cached on disk: a kernel that takes a compiled function as its argument misses
     numba's cache in every new process and would add a file to it each time."""
     return fn if numba is None else numba.njit(nogil=True, inline="always")(fn)
