@@ -37,14 +37,10 @@ def usable(*tensors) -> bool:
     with no gradient to record."""
     if numba is None or not ENABLED:
         return False
-    given = [t for t in map(_tensor, tensors) if t is not None]
+    given = [t for t in tensors if t is not None]
     grad = torch.is_grad_enabled()
     return ({t.dtype for t in given} in ({torch.float64}, {torch.float32})
             and all(t.device.type == "cpu" and not (grad and t.requires_grad) for t in given))
-
-
-def _tensor(t):
-    return t if t is None or isinstance(t, torch.Tensor) else torch.as_tensor(t)
 
 
 def stretch(u: torch.Tensor, ends: tuple, xi: torch.Tensor, length: torch.Tensor) -> torch.Tensor:

@@ -157,7 +157,7 @@ class StochasticFracture:
                 raise NumericalInstabilityError(
                     f"the stochastic fracture run blew up at step {n} (load factor {lams[k]:g}): "
                     "reduce dt, or the noise (eta), or give the body eps > 0")
-            bonds_now = body.kinematics.shared_components(u)  # one gather for the stretch and f_int
+            bonds_now = body.kinematics.shared_components(u)  # one torch gather for both, or None
             state = law.update(state, body.kinematics.stretch(u, bonds_now), dt)
             intact = law.intact(state)
             broken, was_broken = intact < 0.5, broken
