@@ -37,6 +37,8 @@ work per step instead of O(n k).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
@@ -46,9 +48,43 @@ from bayespd.solvers.linear import spd_factor
 from bayespd.sparse import Factor, NotPositiveDefiniteError, PCGFactor
 
 
+@dataclass(frozen=True)
+class LocalChange:
+    """A symmetric n x n change supported on few rows: entries ``v`` at (``r``, ``c``)
+    (repeated positions add up), and ``rows``, the sorted rows they touch."""
+
+    n: int
+    rows: np.ndarray
+    r: np.ndarray
+    c: np.ndarray
+    v: np.ndarray
+
+    @classmethod
+    def of(cls, delta) -> "LocalChange":
+        """The change given as a symmetric scipy sparse matrix."""
+        delta = sp.coo_matrix(sp.csr_matrix(delta))
+        delta.eliminate_zeros()
+        if delta.shape[0] != delta.shape[1]:
+            raise ValueError(f"a change must be square, got {delta.shape}")
+        return cls(delta.shape[0], np.unique(delta.row), delta.row, delta.col, delta.data)
+
+    def __matmul__(self, x: np.ndarray) -> np.ndarray:
+        return sp.coo_matrix((self.v, (self.r, self.c)), shape=(self.n, self.n)) @ x
+
+    def placed(self, order: np.ndarray) -> np.ndarray:
+        """The dense change on the rows ``order`` (k, k), which holds every one of ``rows``
+        in any order (the Woodbury columns' order of touch)."""
+        k = len(order)
+        at = np.full(self.n, -1)
+        at[order] = np.arange(k)
+        if np.any(at[self.rows] < 0):
+            raise ValueError("order must hold every row of the change")
+        return np.bincount(at[self.r] * k + at[self.c], self.v, minlength=k * k).reshape(k, k)
+
+
 class LocallyUpdated:
-    """The symmetric operator A = A0 + delta (scipy sparse n x n; delta None or supported on
-    few rows), with ``A @ v`` and ``shifted_factor(s, b)``, a factor of diag(s) + b A made
+    """The symmetric operator A = A0 + delta (scipy sparse n x n; delta None or a
+    ``LocalChange``), with ``A @ v`` and ``shifted_factor(s, b)``, a factor of diag(s) + b A made
     from the one of diag(s) + b A0 (shared by every operator ``changed`` from the same A0).
     ``max_rank``: the most rows a change may touch before ``changed`` asks for a new A0;
     ``groups``: (n,) labels of the rows whose columns are solved together (default: each row
@@ -68,16 +104,16 @@ class LocallyUpdated:
         self._bases = {} if _bases is None else _bases
 
     def changed(self, delta) -> "LocallyUpdated | None":
-        """A0 + delta, delta (sparse, symmetric) the whole change since A0; None when it
-        touches more than ``max_rank`` rows, or rows outside ``region`` (factorise a new A0)."""
-        delta = sp.csr_matrix(delta)
-        delta.eliminate_zeros()
-        if delta.shape != self.shape:
+        """A0 + delta, delta (a ``LocalChange`` or a symmetric scipy sparse matrix) the whole
+        change since A0; None when it touches more than ``max_rank`` rows, or rows outside
+        ``region`` (factorise a new A0)."""
+        delta = delta if isinstance(delta, LocalChange) else LocalChange.of(delta)
+        if delta.n != self.shape[0]:
             raise ValueError(f"the change must be {self.shape[0]} x {self.shape[1]} like A0")
-        rows = np.flatnonzero(np.diff(delta.indptr))
+        rows = delta.rows
         if len(rows) > self.max_rank or (self.region is not None and not np.isin(rows, self.region).all()):
             return None
-        return LocallyUpdated(self.A0, self.max_rank, delta if delta.nnz else None, self._bases, self.groups,
+        return LocallyUpdated(self.A0, self.max_rank, delta if len(rows) else None, self._bases, self.groups,
                               self.region)
 
     def __matmul__(self, v):
@@ -99,9 +135,9 @@ class LocallyUpdated:
         base = self._bases[key]
         if self.delta is None:
             return Factor(base.solve)
-        order = base.touch(np.flatnonzero(np.diff(self.delta.indptr)))
+        order = base.touch(self.delta.rows)
         inverse = base.gram_inverse()
-        schur = _cholesky(inverse + b * self.delta[order][:, order].toarray(),
+        schur = _cholesky(inverse + b * self.delta.placed(order),
                           "the operator is not positive definite after the change: factorise it afresh")
 
         def correct(x_R):  # (I + D W_R)^-1 D x_R (module docstring)
