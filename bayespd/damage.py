@@ -13,9 +13,9 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
+
+from bayespd.bond_loops import components
 
 
 def _positive(name, value):
@@ -177,8 +177,7 @@ def crack_path(particles, phi, threshold: float = 0.4, width: float | None = Non
     if len(idx) < 2:
         return np.zeros((0, x.shape[1]))
     pairs = cKDTree(x[idx]).query_pairs(1.5 * h, output_type="ndarray")
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(idx),) * 2)
-    labels = connected_components(graph, directed=False)[1]
+    labels = components(len(idx), pairs[:, 0], pairs[:, 1])[1]
     keep = idx[labels == np.argmax(np.bincount(labels))]
     pts, w = x[keep], phi[keep]
     centre = np.average(pts, axis=0, weights=w)

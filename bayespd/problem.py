@@ -7,8 +7,8 @@ from functools import cached_property
 import numpy as np
 import scipy.sparse as sp
 import torch
-from scipy.sparse.csgraph import connected_components
 
+from bayespd.bond_loops import components
 from bayespd.stiffness_solver import Assembly
 from bayespd.boundary import Constraints, Dirichlet, Load
 from bayespd.observe import LinearObservation
@@ -167,8 +167,7 @@ def _refuse_floating_pieces(bonds, fixed: np.ndarray) -> None:
     """Each connected piece of the bond graph (a body cut through by a pre-crack, an
     isolated particle) needs a Dirichlet region, else it floats and K is singular."""
     n = len(fixed)
-    graph = sp.coo_matrix((np.ones(bonds.n), (bonds.i, bonds.j)), shape=(n, n))
-    count, label = connected_components(graph, directed=False)
+    count, label = components(n, bonds.i, bonds.j)
     anchored = np.zeros(count, dtype=bool)
     anchored[label[fixed]] = True
     if not anchored.all():

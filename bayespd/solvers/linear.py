@@ -12,9 +12,9 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
-from scipy.sparse.csgraph import connected_components
 
 from bayespd.assembly import numeric_values, to_numpy
+from bayespd.bond_loops import components
 from bayespd.materials import _C_DEV, LPS
 from bayespd.nonlinear import M_FLOOR
 from bayespd.sparse import Factor, NotPositiveDefiniteError, Pattern
@@ -99,9 +99,8 @@ def floating_particles(bonds, intact, fixed: np.ndarray) -> np.ndarray:
     CONNECTED (all bonds when ``intact`` is None) that hold no ``fixed`` particle."""
     n = len(fixed)
     keep = np.ones(bonds.n, dtype=bool) if intact is None else np.asarray(torch.as_tensor(intact) > CONNECTED)
-    graph = sp.coo_matrix((np.ones(int(keep.sum())), (bonds.i[keep], bonds.j[keep])), shape=(n, n))
-    label = connected_components(graph, directed=False)[1]
-    anchored = np.zeros(label.max() + 1, dtype=bool)
+    count, label = components(n, bonds.i, bonds.j, keep)
+    anchored = np.zeros(count, dtype=bool)
     anchored[label[fixed]] = True
     return np.flatnonzero(~anchored[label])
 
