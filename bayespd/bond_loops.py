@@ -9,7 +9,8 @@ do the torch path's operations in its order (e = eta . (y + xi) / (|y| + |xi|),
 ``nonlinear``), with a correctly rounded |y| where torch's sqrt and hypot are off by an ulp
 now and then: they agree with it to a few ulp, in float64 and float32 (tests/test_nonlinear.py).
 The torch path stays for what they do not cover (``usable``): gradients, other devices, LPS.
-``components`` labels the pieces of a bond graph by union-find (scipy's connected_components
+``tangent_change`` assembles the change of the bond-based tangent (``quasistatic``) over a
+set of bonds as matrix entries. ``components`` labels the pieces of a bond graph by union-find (scipy's connected_components
 without numba): 1.5 ms instead of 5 ms for the 173k bonds of the 10k-particle plate.
 For the 10k-particle plate a step's stretch and force take ~3 ms instead of 10 on one core;
 the force of a 64k-particle 3D cube 93 ms instead of 843 (benchmarks/README.md, "Compiled
@@ -63,6 +64,20 @@ def pmb_force(u: torch.Tensor, ends: tuple, xi: torch.Tensor, length: torch.Tens
     _pmb_force(_BOND[u.shape[1]], u.detach().numpy(), *ends, xi.numpy(), length.numpy(), k, mu,
                intact is not None, f)
     return torch.from_numpy(f)
+
+
+def tangent_change(u_before: np.ndarray, u_after: np.ndarray, ends: tuple, xi: np.ndarray, length: np.ndarray,
+                   k: np.ndarray, bonds: np.ndarray, before: np.ndarray, after: np.ndarray, local: np.ndarray):
+    """(rows, cols, values): the entries of sum over ``bonds`` of after_b T_b(u_after) -
+    before_b T_b(u_before), T_b the bond's tangent blocks (+H on ii and jj, -H on ij and ji,
+    H = k [c I + (1 - c) n n^T], n = y / |y|, c = max(1 - |xi| / |y|, 0)), on the dofs
+    ``local`` (flat dof -> its index, -1: left out); u as (N, dim) numpy arrays."""
+    d = u_after.shape[1]
+    size = 4 * d * d * len(bonds)
+    rows, cols, values = np.empty(size, dtype=np.int64), np.empty(size, dtype=np.int64), np.empty(size)
+    n = _tangent_change(_BOND[d], u_before, u_after, *ends, xi, length, np.broadcast_to(k, length.shape), bonds,
+                        before, after, local, rows, cols, values)
+    return rows[:n], cols[:n], values[:n]
 
 
 def components(n: int, i: np.ndarray, j: np.ndarray, keep: np.ndarray | None = None) -> tuple[int, np.ndarray]:
@@ -160,3 +175,26 @@ def _components(i, j, keep, labels):  # pragma: no cover (compiled)
         else:
             labels[p] = labels[r]
     return count
+
+
+@_compiled
+def _tangent_change(bond, u0, u1, i, j, xi, length, k, bonds, mu0, mu1, local, rows, cols, values):  # pragma: no cover
+    d, n = u1.shape[1], 0
+    for t in range(bonds.shape[0]):
+        b = bonds[t]
+        p, q = i[b], j[b]
+        y0, r0, _ = bond(u0, p, q, xi, length, b)
+        y1, r1, _ = bond(u1, p, q, xi, length, b)
+        c0, c1 = max(1.0 - length[b] / r0, 0.0), max(1.0 - length[b] / r1, 0.0)
+        w0, w1 = k[b] * mu0[b], k[b] * mu1[b]
+        for a in range(d):
+            for e in range(d):
+                h = (w1 * ((1.0 - c1) * (y1[a] / r1) * (y1[e] / r1) + (c1 if a == e else 0.0))
+                     - w0 * ((1.0 - c0) * (y0[a] / r0) * (y0[e] / r0) + (c0 if a == e else 0.0)))
+                for block in range(4):  # ii, jj: +H; ij, ji: -H
+                    row = local[d * (p if block in (0, 2) else q) + a]
+                    col = local[d * (p if block in (0, 3) else q) + e]
+                    if row >= 0 and col >= 0:
+                        rows[n], cols[n], values[n] = row, col, (h if block < 2 else -h)
+                        n += 1
+    return n

@@ -19,6 +19,7 @@ from bayespd.solvers import white_noise
 from bayespd.solvers.linear import shifted_factor, spd_factor
 from bayespd.solvers.quasistatic import LoadedBody
 from bayespd.solvers import trailing, woodbury
+from bayespd import bond_loops
 from bayespd.solvers.woodbury import LocallyUpdated, Refined
 from bayespd.sparse import NotPositiveDefiniteError
 
@@ -99,8 +100,12 @@ def test_conjugate_gradients_on_the_exact_tangent_meet_their_bound(plate):
     assert kappa > 1.001  # the geometric part does change the operator
 
 
+@pytest.mark.parametrize("compiled", [True, False])
 @pytest.mark.parametrize("material", [bp.BondBased, bp.LPS])
-def test_change_matches_the_assembled_operators(material):
+def test_change_matches_the_assembled_operators(monkeypatch, material, compiled):
+    """The change (compiled bond loops or numpy) equals the difference of the assembled
+    operators to rounding, on the rows it touches and nowhere else."""
+    monkeypatch.setattr(bond_loops, "ENABLED", compiled)
     b = body(material)
     before, after = broken(b, [3, 40]), broken(b, [3, 40, 41, 500])
     after[7] = 0.3

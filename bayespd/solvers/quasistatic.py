@@ -34,6 +34,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
+from bayespd import bond_loops
 from bayespd.assembly import numeric_values
 from bayespd.boundary import Constraints
 from bayespd.damage import DamageIndex, DamageODE
@@ -188,18 +189,33 @@ class LoadedBody:
         ends = np.zeros(self.particles.n, dtype=bool)
         ends[i[changed]] = ends[j[changed]] = True
         bonds = self._bonds_among(ends)
-        H = (self._bond_hessians(u_after if u_after is not None else u, bonds) * after.numpy()[bonds, None, None]
-             - self._bond_hessians(u, bonds) * before.numpy()[bonds, None, None])
         local = np.full(self.material.pattern.n, -1)
         local[active] = np.arange(len(active))
+        ends_dofs = local[(d * np.flatnonzero(ends)[:, None] + np.arange(d)).reshape(-1)]
+        u_after = u if u_after is None else u_after
+        return LocalChange(len(active), ends_dofs[ends_dofs >= 0],
+                           *self._change_entries(u, u_after, before.numpy(), after.numpy(), bonds, local))
+
+    def _change_entries(self, u, u_after, before, after, bonds, local):
+        """(rows, cols, values) of the tangent change of ``operator_change`` over ``bonds``:
+        compiled (``bond_loops.tangent_change``) where it can, else from ``_bond_hessians``."""
+        if bond_loops.usable(*[v for v in (u, u_after) if v is not None]):
+            def at(v):  # u as float64 numpy (None: zero)
+                return np.zeros((self.particles.n, self.particles.dim)) if v is None else np.asarray(v, dtype=np.float64)
+
+            xi, length = self.kinematics.geometry(torch.float64)
+            return bond_loops.tangent_change(at(u), at(u_after),
+                                             self.kinematics._ends, xi.numpy(), length.numpy(),
+                                             self.forces.k.detach().numpy(), bonds, before, after, local)
+        d, i, j = self.particles.dim, self.bonds.i, self.bonds.j
+        H = (self._bond_hessians(u_after, bonds) * after[bonds, None, None]
+             - self._bond_hessians(u, bonds) * before[bonds, None, None])
         dofs = local[d * np.stack([i[bonds], j[bonds]], 1)[:, :, None] + np.arange(d)]  # (bonds, 2, d)
         p, q = dofs[:, 0], dofs[:, 1]
         rows = np.concatenate([np.broadcast_to(x[:, :, None], H.shape) for x in (p, q, p, q)])
         cols = np.concatenate([np.broadcast_to(x[:, None, :], H.shape) for x in (p, q, q, p)])
         keep = (rows >= 0) & (cols >= 0)
-        ends_dofs = local[(d * np.flatnonzero(ends)[:, None] + np.arange(d)).reshape(-1)]
-        return LocalChange(len(active), ends_dofs[ends_dofs >= 0], rows[keep], cols[keep],
-                           np.concatenate([H, H, -H, -H])[keep])
+        return rows[keep], cols[keep], np.concatenate([H, H, -H, -H])[keep]
 
     def _bonds_among(self, mask: np.ndarray) -> np.ndarray:
         """The bonds (sorted) whose two end particles are both in ``mask``: read from the
