@@ -9,7 +9,7 @@ do the torch path's operations in its order (e = eta . (y + xi) / (|y| + |xi|),
 ``nonlinear``), with a correctly rounded |y| where torch's sqrt and hypot are off by an ulp
 now and then: they agree with it to a few ulp, in float64 and float32 (tests/test_nonlinear.py).
 The torch path stays for what they do not cover (``usable``): gradients, other devices, LPS.
-``tangent_change`` assembles the change of the bond-based tangent (``quasistatic``) over a
+``tally`` reads what a damage update changed in one pass. ``tangent_change`` assembles the change of the bond-based tangent (``quasistatic``) over a
 set of bonds as matrix entries. ``components`` labels the pieces of a bond graph by union-find (scipy's connected_components
 without numba): 1.5 ms instead of 5 ms for the 173k bonds of the 10k-particle plate.
 For the 10k-particle plate a step's stretch and force take ~3 ms instead of 10 on one core;
@@ -78,6 +78,14 @@ def tangent_change(u_before: np.ndarray, u_after: np.ndarray, ends: tuple, xi: n
     n = _tangent_change(_BOND[d], u_before, u_after, *ends, xi, length, np.broadcast_to(k, length.shape), bonds,
                         before, after, local, rows, cols, values)
     return rows[:n], cols[:n], values[:n]
+
+
+def tally(intact: torch.Tensor, operated: torch.Tensor, broken: torch.Tensor) -> tuple[float, torch.Tensor, int, bool]:
+    """(max |intact - operated|, the broken mask intact < 1/2, its count, whether it differs
+    from ``broken``) in one pass over the bonds."""
+    now = np.empty(len(intact), dtype=np.bool_)
+    moved, count, differs = _tally(intact.numpy(), operated.numpy(), broken.numpy(), now)
+    return float(moved), torch.from_numpy(now), int(count), bool(differs)
 
 
 def components(n: int, i: np.ndarray, j: np.ndarray, keep: np.ndarray | None = None) -> tuple[int, np.ndarray]:
@@ -198,3 +206,14 @@ def _tangent_change(bond, u0, u1, i, j, xi, length, k, bonds, mu0, mu1, local, r
                         rows[n], cols[n], values[n] = row, col, (h if block < 2 else -h)
                         n += 1
     return n
+
+
+@(numba.njit(nogil=True, cache=True) if numba is not None else (lambda fn: fn))
+def _tally(intact, operated, broken, now):  # pragma: no cover (compiled)
+    moved, count, differs = 0.0, 0, False
+    for b in range(intact.shape[0]):
+        moved = max(moved, abs(intact[b] - operated[b]))
+        now[b] = intact[b] < 0.5
+        count += now[b]
+        differs |= now[b] != broken[b]
+    return moved, count, differs

@@ -9,6 +9,8 @@ import torch
 import bayespd as bp
 from bayespd.damage import CriticalStretch, DamageODE
 from bayespd.solvers import karhunen_loeve, white_noise
+from bayespd import bond_loops
+from bayespd.solvers import fracture
 from bayespd.solvers.fracture import StochasticFracture
 from bayespd.solvers.quasistatic import LoadedBody, quasi_static
 
@@ -128,3 +130,19 @@ def test_a_body_that_came_loose_everywhere_has_nothing_to_solve(plate):
     assert gone.A is None and len(gone.active) == 0
     step, A = frac._stepper(torch.zeros(plate.n_bonds), u, gone, exact=False)
     assert A is None and torch.equal(step(u, 0.5, torch.zeros(plate.n_bonds), 1.0, torch.Generator()), u)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_the_tally_of_a_damage_update(monkeypatch, compiled):
+    """What the run reads after each damage update (largest move of an intact fraction since
+    the operator followed them, the broken mask, its count, whether it changed), compiled
+    or by torch: exact on fractions that cross 1/2, stay put, or sit on 1/2 itself."""
+    monkeypatch.setattr(bond_loops, "ENABLED", compiled)
+    operated = torch.tensor([1.0, 1.0, 0.0, 0.7, 0.5, 0.2])
+    intact = torch.tensor([1.0, 0.3, 0.0, 0.45, 0.5, 0.2])
+    before = operated < 0.5
+    moved, broken, count, differs = fracture._tally(intact, operated, before)
+    assert moved == pytest.approx(0.7, abs=1e-15) and count == 4 and differs
+    assert broken.tolist() == [False, True, True, True, False, True]
+    moved, again, count, differs = fracture._tally(intact, intact, broken)
+    assert (moved, count, differs) == (0.0, 4, False) and torch.equal(again, broken)

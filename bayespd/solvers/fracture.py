@@ -41,6 +41,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from bayespd import bond_loops
 from bayespd.damage import DamageIndex, crack_length, crack_path
 from bayespd.solvers import trailing
 from bayespd.solvers.dynamics import NumericalInstabilityError
@@ -160,10 +161,9 @@ class StochasticFracture:
             bonds_now = body.kinematics.shared_components(u)  # one torch gather for both, or None
             state = law.update(state, body.kinematics.stretch(u, bonds_now), dt)
             intact = law.intact(state)
-            broken, was_broken = intact < 0.5, broken
-            broke = not torch.equal(broken, was_broken)
+            moved, broken, n_broken, broke = _tally(intact, operated, broken)
             stale = getattr(A, "iterations", 0) > REFRESH_ITERATIONS
-            if stale or float((intact - operated).abs().max()) > refactor_tol:
+            if stale or moved > refactor_tol:
                 operated = intact
                 base = (self._factorised(intact, u, max_rank, zone, pieces) if stale
                         else self._updated(base, intact, u, max_rank, zone, pieces))
@@ -175,7 +175,7 @@ class StochasticFracture:
             rec["lam"].append(lams[k])
             f = body.internal(u, intact, bonds_now)
             rec["reac"].append(self.reaction_scale * body.reaction(u, intact, f).numpy())
-            rec["broken"].append(int(broken.sum()))
+            rec["broken"].append(n_broken)
             rec["length"].append(length)
             k += not (hold and broke)
         phi = damage_index(intact)
@@ -262,6 +262,15 @@ class StochasticFracture:
             return out
 
         return step, A
+
+
+def _tally(intact, operated, broken) -> tuple[float, torch.Tensor, int, bool]:
+    """(max |intact - operated|, the broken mask intact < 1/2, its count, whether it differs
+    from ``broken``): ``bond_loops.tally`` in one pass where it can."""
+    if bond_loops.usable(intact, operated):
+        return bond_loops.tally(intact, operated, broken)
+    now = intact < 0.5
+    return float((intact - operated).abs().max()), now, int(now.sum()), not torch.equal(now, broken)
 
 
 @dataclass
