@@ -9,7 +9,7 @@ do the torch path's operations in its order (e = eta . (y + xi) / (|y| + |xi|),
 ``nonlinear``), with a correctly rounded |y| where torch's sqrt and hypot are off by an ulp
 now and then: they agree with it to a few ulp, in float64 and float32 (tests/test_nonlinear.py).
 The torch path stays for what they do not cover (``usable``): gradients, other devices, LPS.
-``tally`` reads what a damage update changed in one pass. ``tangent_change`` assembles the change of the bond-based tangent (``quasistatic``) over a
+``damage_sums`` gives the damage index's numerators. ``tally`` reads what a damage update changed in one pass. ``tangent_change`` assembles the change of the bond-based tangent (``quasistatic``) over a
 set of bonds as matrix entries. ``components`` labels the pieces of a bond graph by union-find (scipy's connected_components
 without numba): 1.5 ms instead of 5 ms for the 173k bonds of the 10k-particle plate.
 For the 10k-particle plate a step's stretch and force take ~3 ms instead of 10 on one core;
@@ -78,6 +78,14 @@ def tangent_change(u_before: np.ndarray, u_after: np.ndarray, ends: tuple, xi: n
     n = _tangent_change(_BOND[d], u_before, u_after, *ends, xi, length, np.broadcast_to(k, length.shape), bonds,
                         before, after, local, rows, cols, values)
     return rows[:n], cols[:n], values[:n]
+
+
+def damage_sums(i: torch.Tensor, j: torch.Tensor, w: torch.Tensor, mu: torch.Tensor, V: torch.Tensor) -> torch.Tensor:
+    """sum_j w (1 - mu) V_j over each particle's bonds (N,), the damaged ones (mu < 1) only,
+    in torch's order (``DamageIndex``: first to every i, then to every j)."""
+    out = np.zeros(len(V), dtype=V.numpy().dtype)
+    _damage_sums(i.numpy(), j.numpy(), w.numpy(), mu.detach().numpy(), V.numpy(), out)
+    return torch.from_numpy(out)
 
 
 def tally(intact: torch.Tensor, operated: torch.Tensor, broken: torch.Tensor) -> tuple[float, torch.Tensor, int, bool]:
@@ -217,3 +225,11 @@ def _tally(intact, operated, broken, now):  # pragma: no cover (compiled)
         count += now[b]
         differs |= now[b] != broken[b]
     return moved, count, differs
+
+
+@(numba.njit(nogil=True, cache=True) if numba is not None else (lambda fn: fn))
+def _damage_sums(i, j, w, mu, V, out):  # pragma: no cover (compiled)
+    for ends, others in ((i, j), (j, i)):
+        for b in range(mu.shape[0]):
+            if mu[b] < 1.0:
+                out[ends[b]] += w[b] * (1.0 - mu[b]) * V[others[b]]

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from bayespd import bond_loops
 from bayespd.bond_loops import components
 
 
@@ -130,7 +131,8 @@ def damage_index(particles, bonds, intact, weight=None) -> torch.Tensor:
 class DamageIndex:
     """``damage_index`` for one body, its denominator sum_j w V_j taken once: phi_i is
     evaluated as sum_j w (1 - mu) V_j / sum_j w V_j, over the damaged bonds only (mu < 1)
-    unless mu requires a gradient, so a call costs O(damaged bonds)."""
+    unless mu requires a gradient, by torch (O(damaged bonds) after a pass that finds them)
+    or by one compiled pass (``bond_loops.damage_sums``)."""
 
     def __init__(self, particles, bonds, weight=None):
         self.n = particles.n
@@ -147,6 +149,8 @@ class DamageIndex:
 
     def __call__(self, intact) -> torch.Tensor:
         mu = torch.as_tensor(intact)
+        if bond_loops.usable(mu, self.w, self.V):  # one compiled pass, the same sums in the same order
+            return bond_loops.damage_sums(self.i, self.j, self.w, mu, self.V) / self.total
         bonds = slice(None) if mu.requires_grad else torch.nonzero(mu < 1).reshape(-1)
         return self._family(self.w[bonds] * (1 - mu[bonds]), bonds) / self.total
 

@@ -5,6 +5,7 @@ import torch
 from scipy.integrate import solve_ivp
 
 import bayespd as bp
+from bayespd import bond_loops
 from bayespd.damage import (CriticalStretch, DamageODE, SmoothStep, broken, crack_length,
                             crack_path, damage_index)
 from bayespd.nonlinear import NonlinearBonds
@@ -151,9 +152,12 @@ def intact_after_precrack(p, bonds, crack):
     return torch.tensor([float((a, b) in keep) for a, b in zip(bonds.i.tolist(), bonds.j.tolist())])
 
 
-def test_damage_index_by_hand():
+@pytest.mark.parametrize("compiled", [True, False])
+def test_damage_index_by_hand(monkeypatch, compiled):
     """h = 1, search radius 1.5: 8 neighbours, 3 of them across a full-width line
-    (2 of 5 at the side columns): phi = 3/8 and 2/5 beside the line, 0 elsewhere."""
+    (2 of 5 at the side columns): phi = 3/8 and 2/5 beside the line, 0 elsewhere (by the
+    compiled pass and by torch)."""
+    monkeypatch.setattr(bond_loops, "ENABLED", compiled)
     p = bp.grid_2d(8.0, 6.0, 1.0)
     bonds = bp.find_bonds(p, 1.0)
     mu = intact_after_precrack(p, bonds, [[-1.0, 3.0], [9.0, 3.0]])
