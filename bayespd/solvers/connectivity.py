@@ -43,9 +43,10 @@ class FloatingPieces:
     def _unsplit(self, keep: np.ndarray) -> bool:
         """True when ``keep`` only drops bonds of the last graph, each of whose ends still
         share an intact neighbour."""
-        if np.any(keep & ~self._keep):
+        flipped = np.flatnonzero(keep != self._keep)
+        if keep[flipped].any():
             return False  # a bond was restored: pieces may have joined
-        lost = np.flatnonzero(self._keep & ~keep)
+        lost = flipped
         if len(lost) > MAX_CHECKED:
             return False
         return all(np.intersect1d(self._neighbours(i, keep), self._neighbours(j, keep), assume_unique=True).size
