@@ -7,7 +7,7 @@ started at the MAP with the Laplace covariance as its mass matrix (100 warmup + 
 the rank of the truth among 19 evenly thinned draws is uniform on 0..19 if the posterior is
 right. Ranks are binned into 5 bins of 4 values and tested by chi-square (4 df); target
 p > 0.01 per parameter. Replications are checkpointed one file each (resumable after a
-kill) and shared with coverage.py. Writes runs/sbc[_free_delta][_quick]/{metrics.json,
+kill) and shared with interval_coverage.py. Writes runs/sbc[_free_delta][_quick]/{metrics.json,
 ranks.png}.
 
     python experiments/sbc.py [--quick] [--n 100] [--free-delta]

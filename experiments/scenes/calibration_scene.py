@@ -27,7 +27,7 @@ Replication ``i`` draws (K, G, delta, sigma) and then y from the model itself (s
 crime rule of DESIGN.md is for results about the physics; delta_identifiability.py uses finer
 data.) Each replication's summary is written atomically to
 ``runs/calibration_reps/<method>-<fingerprint>/rep_<i>.json`` as it finishes, so a killed run
-resumes and sbc.py and coverage.py share the NUTS fits.
+resumes and sbc.py and interval_coverage.py share the NUTS fits.
 """
 from __future__ import annotations
 
@@ -195,7 +195,7 @@ def successful(records: list[dict]) -> list[dict]:
 
 
 def command_line(doc: str, unit: str) -> tuple[int, bool, bool]:
-    """(n, free_delta, quick) from the command line shared by sbc.py and coverage.py."""
+    """(n, free_delta, quick) from the command line shared by sbc.py and interval_coverage.py."""
     import argparse
 
     parser = argparse.ArgumentParser(description=doc.splitlines()[0])

@@ -10,7 +10,7 @@ probability written as ``p_pass_if_exact``). SVI and Laplace are reported, not t
 far below 0.9 they fall, in points and in binomial sds. NUTS fits are shared with sbc.py.
 Writes runs/coverage[_free_delta][_quick]/{metrics.json, coverage.png}.
 
-    python experiments/coverage.py [--quick] [--n 100] [--free-delta]
+    python experiments/interval_coverage.py [--quick] [--n 100] [--free-delta]
 """
 from __future__ import annotations
 
