@@ -1,5 +1,5 @@
-"""Compiled loops over the bonds for the CPU forward path of ``bayespd.nonlinear`` (numba,
-optional: ``pip install bayespd[fast]``).
+"""Compiled loops over the bonds for the CPU paths of ``bayespd.nonlinear``, the damage index
+and the fracture driver (numba, optional: ``pip install bayespd[fast]``).
 
 torch evaluates the stretch and the PMB force of seed 002 eq 1-2 as a dozen passes over the
 bond arrays, each writing a temporary; a loop reads each bond once and writes only its
@@ -9,15 +9,19 @@ do the torch path's operations in its order (e = eta . (y + xi) / (|y| + |xi|),
 ``nonlinear``), with a correctly rounded |y| where torch's sqrt and hypot are off by an ulp
 now and then: they agree with it to a few ulp, in float64 and float32 (tests/test_nonlinear.py).
 The torch path stays for what they do not cover (``usable``): gradients, other devices, LPS.
-``damage_sums`` gives the damage index's numerators. ``tally`` reads what a damage update changed in one pass. ``tangent_change`` assembles the change of the bond-based tangent (``quasistatic``) over a
-set of bonds as matrix entries. ``components`` labels the pieces of a bond graph by union-find (scipy's connected_components
-without numba): 1.5 ms instead of 5 ms for the 173k bonds of the 10k-particle plate.
 For the 10k-particle plate a step's stretch and force take ~3 ms instead of 10 on one core;
 the force of a 64k-particle 3D cube 93 ms instead of 843 (benchmarks/README.md, "Compiled
 bond loops").
 
-ENABLED = False (or BAYESPD_BOND_LOOPS=0 in the environment) uses the torch path everywhere
-(the tests and benchmarks compare the two).
+The work of a fracture run between its solves, each one pass where numpy, torch or scipy
+take several (benchmarks/fracture_changes.py): ``tangent_change``, the entries of the
+change of the bond-based tangent (``quasistatic``) over a set of bonds; ``damage_sums``,
+the damage index's numerators, bit for bit torch's; ``tally``, what a damage update
+changed; ``components``, the pieces of a bond graph by union-find, numbered as scipy's
+connected_components numbers them (which it calls without numba).
+
+ENABLED = False (or BAYESPD_BOND_LOOPS=0 in the environment) uses the torch, numpy and scipy
+paths everywhere (the tests and benchmarks compare the two).
 """
 from __future__ import annotations
 
@@ -109,10 +113,15 @@ def components(n: int, i: np.ndarray, j: np.ndarray, keep: np.ndarray | None = N
 
 
 def _compiled(fn):
-    """Compiled on first use in each process (~0.7 s for the two kernels of one dimension and
-    dtype), not cached on disk: a kernel that takes a compiled function as its argument misses
-    numba's cache in every new process and would add a file to it each time."""
+    """Compiled on first use in each process (~0.35 s a kernel, dimension and dtype), not
+    cached on disk: a kernel that takes a compiled function as its argument misses numba's
+    cache in every new process and would add a file to it each time."""
     return fn if numba is None else numba.njit(nogil=True, inline="always")(fn)
+
+
+def _cached(fn):
+    """Compiled on first use and cached on disk (a kernel that takes no compiled function)."""
+    return fn if numba is None else numba.njit(nogil=True, cache=True)(fn)
 
 
 # (y, |y|, e) of bond b from particle p to q, y a tuple: the components written out, which the
@@ -161,7 +170,7 @@ def _pmb_force(bond, u, i, j, xi, length, k, mu, damaged, f):  # pragma: no cove
             f[q, a] -= fb
 
 
-@(numba.njit(nogil=True, cache=True) if numba is not None else (lambda fn: fn))
+@_cached
 def _components(i, j, keep, labels):  # pragma: no cover (compiled)
     """Union-find with path halving, each root the lowest vertex of its piece; then the
     labels in vertex order (a root comes before the rest of its piece)."""
@@ -216,7 +225,7 @@ def _tangent_change(bond, u0, u1, i, j, xi, length, k, bonds, mu0, mu1, local, r
     return n
 
 
-@(numba.njit(nogil=True, cache=True) if numba is not None else (lambda fn: fn))
+@_cached
 def _tally(intact, operated, broken, now):  # pragma: no cover (compiled)
     moved, count, differs = 0.0, 0, False
     for b in range(intact.shape[0]):
@@ -227,7 +236,7 @@ def _tally(intact, operated, broken, now):  # pragma: no cover (compiled)
     return moved, count, differs
 
 
-@(numba.njit(nogil=True, cache=True) if numba is not None else (lambda fn: fn))
+@_cached
 def _damage_sums(i, j, w, mu, V, out):  # pragma: no cover (compiled)
     for ends, others in ((i, j), (j, i)):
         for b in range(mu.shape[0]):

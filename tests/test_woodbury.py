@@ -117,6 +117,31 @@ def test_change_matches_the_assembled_operators(monkeypatch, material, compiled)
     assert np.array_equal(change.rows, np.flatnonzero(np.abs(direct).max(1) > 0))
 
 
+def test_change_in_3d_by_the_loops_and_by_numpy():
+    """A bond-based cube, clamped at the bottom and pulled at the top: at one u the change
+    equals the difference of the assembled operators, by the compiled loops and by numpy;
+    with the damaged zone's tangent moved to a later u the two paths agree to rounding."""
+    p = bp.grid_3d(5.0, 5.0, 5.0, 1.0)
+    bcs = [bp.Dirichlet.layer(p, "bottom", 1.5, (0.0, 0.0, 0.0)), bp.Dirichlet.layer(p, "top", 1.5, (0.0, 0.0, 0.1))]
+    b = LoadedBody(bp.BondBased(p, bp.find_bonds(p, 1.5)), {"K": 1000.0}, 1.5, bcs)
+    before, after = broken(b, [3, 40]), broken(b, [3, 40, 41, 500, 501])
+    active = b.active(before)
+    gen = torch.Generator().manual_seed(0)
+    u, later = (0.02 * torch.randn(p.n, 3, generator=gen) for _ in range(2))
+    direct = (b.operator(after, active, u) - b.operator(before, active, u)).toarray()
+    dense = {}
+    for compiled in (True, False):
+        bond_loops.ENABLED = compiled
+        try:
+            change = b.operator_change(before, after, active, u)
+            assert len(change.rows) >= 12  # the dofs of at least the four ends of the changed bonds
+            assert np.abs(change @ np.eye(len(active)) - direct).max() <= 1e-12 * np.abs(direct).max()
+            dense[compiled] = b.operator_change(before, after, active, u, later) @ np.eye(len(active))
+        finally:
+            bond_loops.ENABLED = True
+    assert np.abs(dense[True] - dense[False]).max() <= 1e-12 * np.abs(dense[False]).max()
+
+
 def test_change_takes_in_every_bond_between_the_changed_ends(plate):
     """The bonds whose tangent a change re-evaluates are read from the changed ends' own
     bonds: the same sorted set as a pass over every bond, for sparse to dense sets of ends."""
