@@ -16,7 +16,6 @@ import torch
 from scipy.spatial import cKDTree
 
 from bayespd import bond_loops
-from bayespd.bond_loops import components
 
 
 def _positive(name, value):
@@ -181,7 +180,7 @@ def crack_path(particles, phi, threshold: float = 0.4, width: float | None = Non
     if len(idx) < 2:
         return np.zeros((0, x.shape[1]))
     pairs = cKDTree(x[idx]).query_pairs(1.5 * h, output_type="ndarray")
-    labels = components(len(idx), pairs[:, 0], pairs[:, 1])[1]
+    labels = bond_loops.components(len(idx), pairs[:, 0], pairs[:, 1])[1]
     keep = idx[labels == np.argmax(np.bincount(labels))]
     pts, w = x[keep], phi[keep]
     centre = np.average(pts, axis=0, weights=w)

@@ -43,10 +43,9 @@ class FloatingPieces:
     def _unsplit(self, keep: np.ndarray) -> bool:
         """True when ``keep`` only drops bonds of the last graph, each of whose ends still
         share an intact neighbour."""
-        flipped = np.flatnonzero(keep != self._keep)
-        if keep[flipped].any():
+        lost = np.flatnonzero(keep != self._keep)
+        if keep[lost].any():
             return False  # a bond was restored: pieces may have joined
-        lost = flipped
         if len(lost) > MAX_CHECKED:
             return False
         return all(np.intersect1d(self._neighbours(i, keep), self._neighbours(j, keep), assume_unique=True).size

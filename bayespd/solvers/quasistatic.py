@@ -199,7 +199,7 @@ class LoadedBody:
     def _change_entries(self, u, u_after, before, after, bonds, local):
         """(rows, cols, values) of the tangent change of ``operator_change`` over ``bonds``:
         compiled (``bond_loops.tangent_change``) where it can, else from ``_bond_hessians``."""
-        if bond_loops.usable(*[v for v in (u, u_after) if v is not None]):
+        if bond_loops.usable(u, u_after):
             def at(v):  # u as float64 numpy (None: zero)
                 return np.zeros((self.particles.n, self.particles.dim)) if v is None else np.asarray(v, dtype=np.float64)
 
