@@ -117,7 +117,7 @@ def test_change_matches_the_assembled_operators(monkeypatch, material, compiled)
     assert np.array_equal(change.rows, np.flatnonzero(np.abs(direct).max(1) > 0))
 
 
-def test_change_in_3d_by_the_loops_and_by_numpy():
+def test_change_in_3d_by_the_loops_and_by_numpy(monkeypatch):
     """A bond-based cube, clamped at the bottom and pulled at the top: at one u the change
     equals the difference of the assembled operators, by the compiled loops and by numpy;
     with the damaged zone's tangent moved to a later u the two paths agree to rounding."""
@@ -131,14 +131,11 @@ def test_change_in_3d_by_the_loops_and_by_numpy():
     direct = (b.operator(after, active, u) - b.operator(before, active, u)).toarray()
     dense = {}
     for compiled in (True, False):
-        bond_loops.ENABLED = compiled
-        try:
-            change = b.operator_change(before, after, active, u)
-            assert len(change.rows) >= 12  # the dofs of at least the four ends of the changed bonds
-            assert np.abs(change @ np.eye(len(active)) - direct).max() <= 1e-12 * np.abs(direct).max()
-            dense[compiled] = b.operator_change(before, after, active, u, later) @ np.eye(len(active))
-        finally:
-            bond_loops.ENABLED = True
+        monkeypatch.setattr(bond_loops, "ENABLED", compiled)
+        change = b.operator_change(before, after, active, u)
+        assert len(change.rows) >= 12  # the dofs of at least the four ends of the changed bonds
+        assert np.abs(change @ np.eye(len(active)) - direct).max() <= 1e-12 * np.abs(direct).max()
+        dense[compiled] = b.operator_change(before, after, active, u, later) @ np.eye(len(active))
     assert np.abs(dense[True] - dense[False]).max() <= 1e-12 * np.abs(dense[False]).max()
 
 
