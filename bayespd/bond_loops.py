@@ -105,7 +105,7 @@ def components(n: int, i: np.ndarray, j: np.ndarray, keep: np.ndarray | None = N
     (i, j) (those with ``keep``, default all), numbered 0, 1, ... in the order of their lowest
     vertex, as scipy's ``connected_components`` numbers them."""
     keep = np.ones(len(i), dtype=bool) if keep is None else np.asarray(keep, dtype=bool)
-    if numba is None or not ENABLED:
+    if not usable():
         graph = sp.coo_matrix((np.ones(int(keep.sum())), (i[keep], j[keep])), shape=(n, n))
         return connected_components(graph, directed=False)
     labels = np.empty(n, dtype=np.int64)

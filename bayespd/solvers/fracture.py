@@ -265,8 +265,7 @@ class StochasticFracture:
 
 
 def _tally(intact, operated, broken) -> tuple[float, torch.Tensor, int, bool]:
-    """(max |intact - operated|, the broken mask intact < 1/2, its count, whether it differs
-    from ``broken``): ``bond_loops.tally`` in one pass where it can."""
+    """``bond_loops.tally`` where it can, else the same by torch."""
     if bond_loops.usable(intact, operated):
         return bond_loops.tally(intact, operated, broken)
     now = intact < 0.5
