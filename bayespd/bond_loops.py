@@ -41,14 +41,14 @@ ENABLED = os.environ.get("BAYESPD_BOND_LOOPS", "1") != "0"
 
 
 def usable(*tensors) -> bool:
-    """True when the loops can stand in for torch on these tensors (None: absent, ignored):
-    numba is installed and ENABLED, and they are on the CPU, all float64 or all float32,
-    with no gradient to record."""
+    """True when the loops can stand in for torch on these tensors (None: absent, ignored;
+    none at all: for loops over index arrays): numba is installed and ENABLED, and they are
+    on the CPU, all float64 or all float32, with no gradient to record."""
     if numba is None or not ENABLED:
         return False
     given = [t for t in tensors if t is not None]
     grad = torch.is_grad_enabled()
-    return ({t.dtype for t in given} in ({torch.float64}, {torch.float32})
+    return ({t.dtype for t in given} in (set(), {torch.float64}, {torch.float32})
             and all(t.device.type == "cpu" and not (grad and t.requires_grad) for t in given))
 
 
@@ -173,22 +173,28 @@ def _pmb_force(bond, u, i, j, xi, length, k, mu, damaged, f):  # pragma: no cove
 @_cached
 def _components(i, j, keep, labels):  # pragma: no cover (compiled)
     """Union-find with path halving, each root the lowest vertex of its piece; then the
-    labels in vertex order (a root comes before the rest of its piece)."""
+    labels in vertex order (a root comes before the rest of its piece). The root of the
+    first end is kept while consecutive edges share it (edges sorted by their first end:
+    one find per vertex instead of one per edge; 1.3 -> 0.95 ms for the 10k-particle plate)."""
     parent = np.arange(labels.shape[0])
+    first, root = -1, -1
     for b in range(i.shape[0]):
         if not keep[b]:
             continue
-        p, q = i[b], j[b]
-        while parent[p] != p:
-            parent[p] = parent[parent[p]]
-            p = parent[p]
+        if i[b] != first:
+            first = root = i[b]
+            while parent[root] != root:
+                parent[root] = parent[parent[root]]
+                root = parent[root]
+        q = j[b]
         while parent[q] != q:
             parent[q] = parent[parent[q]]
             q = parent[q]
-        if p < q:
-            parent[q] = p
-        elif q < p:
-            parent[p] = q
+        if root < q:
+            parent[q] = root
+        elif q < root:
+            parent[root] = q
+            root = q
     count = 0
     for p in range(labels.shape[0]):
         r = p

@@ -53,8 +53,11 @@ def test_floating_pieces_match_a_fresh_labelling(monkeypatch):
 def test_components_number_the_pieces_as_scipy_does(monkeypatch, compiled):
     """``bond_loops.components`` (union-find, or scipy without numba) gives scipy's count and
     labels exactly, on 300 random graphs (self-loops, repeated edges, isolated vertices,
-    edges left out by ``keep``) and on the 10k-particle plate's bonds cut along a line."""
+    edges left out by ``keep``; every other one sorted by first end, as bonds are) and on
+    the 10k-particle plate's bonds cut along a line; the union-find runs when it should."""
     monkeypatch.setattr(bond_loops, "ENABLED", compiled)
+    calls, union_find = [], bond_loops._components
+    monkeypatch.setattr(bond_loops, "_components", lambda *a: calls.append(1) or union_find(*a))
     rng = np.random.default_rng(0)
 
     def scipy_components(n, i, j, keep):
@@ -64,6 +67,9 @@ def test_components_number_the_pieces_as_scipy_does(monkeypatch, compiled):
     for _ in range(300):
         n, m = int(rng.integers(1, 60)), int(rng.integers(0, 90))
         i, j, keep = rng.integers(0, n, m), rng.integers(0, n, m), rng.random(m) < 0.8
+        if _ % 2:
+            order = np.argsort(i, kind="stable")
+            i, j = i[order], j[order]
         count, labels = bond_loops.components(n, i, j, keep)
         expected = scipy_components(n, i, j, keep)
         assert count == expected[0] and np.array_equal(labels, expected[1])
@@ -72,3 +78,4 @@ def test_components_number_the_pieces_as_scipy_does(monkeypatch, compiled):
     keep = ~((np.minimum(p.x[bonds.i, 1], p.x[bonds.j, 1]) < 50) & (np.maximum(p.x[bonds.i, 1], p.x[bonds.j, 1]) > 50))
     count, labels = bond_loops.components(p.n, bonds.i, bonds.j, keep)
     assert count == 2 and np.array_equal(labels, scipy_components(p.n, bonds.i, bonds.j, keep)[1])
+    assert len(calls) == (301 if compiled and bond_loops.numba is not None else 0)

@@ -101,6 +101,10 @@ class LocallyUpdated:
             raise ValueError("region= needs CHOLMOD (the 'fast' extra); use groups= without it")
         self.groups = None if groups is None else np.asarray(groups)
         self.region = None if region is None else np.asarray(region, dtype=np.int64)
+        self._inside = None
+        if region is not None:
+            self._inside = np.zeros(self.shape[0], dtype=bool)
+            self._inside[self.region] = True
         self._bases = {} if _bases is None else _bases
 
     def changed(self, delta) -> "LocallyUpdated | None":
@@ -111,7 +115,7 @@ class LocallyUpdated:
         if delta.n != self.shape[0]:
             raise ValueError(f"the change must be {self.shape[0]} x {self.shape[1]} like A0")
         rows = delta.rows
-        if len(rows) > self.max_rank or (self.region is not None and not np.isin(rows, self.region).all()):
+        if len(rows) > self.max_rank or (self._inside is not None and not self._inside[rows].all()):
             return None
         return LocallyUpdated(self.A0, self.max_rank, delta if len(rows) else None, self._bases, self.groups,
                               self.region)
@@ -159,14 +163,15 @@ def _cholesky(X: np.ndarray, message: str):
 
 
 class _Columns:
-    """The columns of rows touched so far, as rows of a buffer in the order the rows were
-    first touched (allocated as they come, up to ``capacity`` rows, then doubling);
+    """The columns of rows (of an n x n operator) touched so far, as rows of a buffer in the
+    order the rows were first touched (allocated as they come, up to ``capacity`` rows, then doubling);
     ``_new(rows)`` makes the columns of new rows, (len(rows), width); ``gram_inverse()`` is
     W_R^-1 in ``order``, bordered as rows join with the blocks ``_bordering(old)`` of W_R."""
 
-    def __init__(self, width: int, capacity: int):
+    def __init__(self, n: int, width: int, capacity: int):
         self.width, self.k, self.capacity = width, 0, max(int(capacity), 16)
         self.order = np.zeros(0, dtype=np.int64)
+        self._touched = np.zeros(n, dtype=bool)  # the rows in order
         self._rows = np.empty((0, width))
         self._inverse = np.zeros((0, 0))
 
@@ -193,7 +198,7 @@ class _Columns:
 
     def touch(self, rows: np.ndarray) -> np.ndarray:
         """Make the columns of the ``rows`` not touched before; return the order of all."""
-        new = np.setdiff1d(rows, self.order)
+        new = np.unique(rows[~self._touched[rows]])
         if len(new):
             if self.k + len(new) > len(self._rows):
                 size = self.capacity if self.k + len(new) <= self.capacity else 2 * (self.k + len(new))
@@ -203,6 +208,7 @@ class _Columns:
             self._rows[self.k: self.k + len(new)] = self._new(new)
             self.k += len(new)
             self.order = np.concatenate([self.order, new])
+            self._touched[new] = True
         return self.order
 
     @property
@@ -216,7 +222,7 @@ class _Solved(_Columns):
     ``_ready``. M^-1 r = x0 - W c, x0 = P^-1 r, c = correct(x0_R)."""
 
     def __init__(self, factor: Factor, n: int, capacity: int, groups=None):
-        super().__init__(n, capacity)
+        super().__init__(n, n, capacity)
         self.factor, self.groups = factor, groups
         self.solve = factor.solve
         self._ready = {}
@@ -258,7 +264,7 @@ class _Trailing(_Columns):
     half solve, O(|region| k) besides."""
 
     def __init__(self, factor: trailing.TrailingFactor, capacity: int):
-        super().__init__(len(factor.trailing_inverse), capacity)
+        super().__init__(factor.n, len(factor.trailing_inverse), capacity)
         self.factor, self.solve = factor, factor.solve
 
     def _bordering(self, old: int) -> tuple[np.ndarray, np.ndarray]:
