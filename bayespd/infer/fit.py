@@ -136,6 +136,7 @@ def fit(model, data: dict, method="nuts", *, num_samples=500, num_warmup=500, nu
         raise ValueError("modes='weighted' fits every mode that several MAP searches find: use it "
                          "with map_starts >= 2 (e.g. 8) and, for NUTS, HMC and SVI, init='map'")
     check_data(data, observed)
+    pyro.set_rng_seed(seed)  # init_to_median draws from the prior: the seed fixes the start too
     start_init = _initial(init_values)
     trace = init_trace(model, data, start_init)
     check_observed_shape(trace, data, observed, scene)
