@@ -37,6 +37,7 @@ work per step instead of O(n k).
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -83,17 +84,18 @@ class LocalChange:
 
 
 class LocallyUpdated:
-    """The symmetric operator A = A0 + delta (scipy sparse n x n; delta None or a
-    ``LocalChange``), with ``A @ v`` and ``shifted_factor(s, b)``, a factor of diag(s) + b A made
-    from the one of diag(s) + b A0 (shared by every operator ``changed`` from the same A0).
+    """The symmetric operator A = A0 (scipy sparse n x n), or A0 + delta (a ``LocalChange``)
+    for an operator ``changed`` from it, with ``A @ v`` and ``shifted_factor(s, b)``, a factor
+    of diag(s) + b A made from the one of diag(s) + b A0 (shared by every operator ``changed``
+    from the same A0).
     ``max_rank``: the most rows a change may touch before ``changed`` asks for a new A0;
     ``groups``: (n,) labels of the rows whose columns are solved together (default: each row
     alone; module docstring); ``region``: the rows a change may touch, ordered last in the
     factor (``trailing.TrailingFactor``: the columns are then read off one dense triangular
     inverse, no solve per row; a change outside it asks for a new A0; CHOLMOD only)."""
 
-    def __init__(self, A0, max_rank: int = 512, delta=None, _bases=None, groups=None, region=None):
-        self.A0, self.delta, self.max_rank = sp.csr_matrix(A0), delta, int(max_rank)
+    def __init__(self, A0, max_rank: int = 512, groups=None, region=None):
+        self.A0, self.delta, self.max_rank = sp.csr_matrix(A0), None, int(max_rank)
         self.shape = self.A0.shape
         if groups is not None and np.shape(groups) != (self.shape[0],):
             raise ValueError(f"groups must hold one label per row ({self.shape[0]})")
@@ -105,20 +107,21 @@ class LocallyUpdated:
         if region is not None:
             self._inside = np.zeros(self.shape[0], dtype=bool)
             self._inside[self.region] = True
-        self._bases = {} if _bases is None else _bases
+        self._bases = {}
 
     def changed(self, delta) -> "LocallyUpdated | None":
         """A0 + delta, delta (a ``LocalChange`` or a symmetric scipy sparse matrix) the whole
         change since A0; None when it touches more than ``max_rank`` rows, or rows outside
-        ``region`` (factorise a new A0)."""
+        ``region`` (factorise a new A0). It shares A0, its masks and its factors with this one."""
         delta = delta if isinstance(delta, LocalChange) else LocalChange.of(delta)
         if delta.n != self.shape[0]:
             raise ValueError(f"the change must be {self.shape[0]} x {self.shape[1]} like A0")
         rows = delta.rows
         if len(rows) > self.max_rank or (self._inside is not None and not self._inside[rows].all()):
             return None
-        return LocallyUpdated(self.A0, self.max_rank, delta if len(rows) else None, self._bases, self.groups,
-                              self.region)
+        out = copy.copy(self)
+        out.delta = delta if len(rows) else None
+        return out
 
     def __matmul__(self, v):
         out = self.A0 @ v
