@@ -17,7 +17,7 @@ from bayespd.dic import frame_data, read_dice  # noqa: E402
 from bayespd.vtk import Series as VTKSeries, write_pvd, write_vtu  # noqa: E402
 from bayespd.meshes import from_mesh  # noqa: E402
 from bayespd.problem import Scene  # noqa: E402
-from bayespd.sparse import NotPositiveDefiniteError, solve  # noqa: E402
+from bayespd.linalg.sparse import NotPositiveDefiniteError, solve  # noqa: E402
 
 __all__ = [
     "Particles", "grid_2d", "grid_3d", "from_points", "from_mesh", "Bonds", "find_bonds", "precrack",

@@ -7,7 +7,7 @@ import numpy as np
 import torch
 
 from bayespd.discretize import Particles
-from bayespd.sparse import Pattern
+from bayespd.linalg.sparse import Pattern
 
 
 class Dirichlet:

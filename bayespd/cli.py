@@ -13,7 +13,7 @@ Contracts (the files ``bayespd demo`` writes are examples of both):
   ``fixed()`` -> {parameter: value} (e.g. the horizon delta).
 * DATA.npz holds ``y`` (the observations, shaped as the model's ``y`` site) and any other
   keyword data of the model (e.g. ``mask``).
-* SCENE.py defines ``fracture_scene()`` -> a ``bayespd.infer.ensemble_scene.FractureScene``
+* SCENE.py defines ``fracture_scene()`` -> a ``bayespd.ensemble.scene.FractureScene``
   whose ``params`` are scalar posterior variables of DIR/posterior.nc.
 
 Outputs: DIR/posterior.nc (calibrate), DIR/ensemble/ (predict: one file per realisation,
@@ -90,7 +90,7 @@ def _module_name(path) -> str:
 
 def load_scene(path):
     """``fracture_scene()`` of SCENE.py, its build made portable to worker processes."""
-    from bayespd.infer.ensemble_scene import FractureScene
+    from bayespd.ensemble.scene import FractureScene
 
     path = str(Path(_existing(path, "the scene file")).resolve())
     module = load_module(path, _module_name(path))
@@ -98,7 +98,7 @@ def load_scene(path):
     scene = _function(module, "fracture_scene", "fracture_scene()", path, "a FractureScene")()
     if not isinstance(scene, FractureScene):
         raise UsageError(f"fracture_scene() in {path} returned {type(scene).__name__}, not a "
-                         "bayespd.infer.ensemble_scene.FractureScene")
+                         "bayespd.ensemble.scene.FractureScene")
     build = scene.build
     func = build.func if isinstance(build, partial) else build
     if getattr(func, "__module__", None) == module.__name__:
@@ -196,7 +196,7 @@ def _print_posterior(tree) -> None:
 
 def predict(args) -> int:
     from bayespd.infer import load
-    from bayespd.infer.predictive import ensemble
+    from bayespd.ensemble.predictive import ensemble
     from bayespd.plot import ensemble_figures
 
     folder = _existing(args.dir, "the calibration folder")
@@ -244,7 +244,7 @@ def summary(args) -> int:
 
 
 def demo(args) -> int:
-    from bayespd.infer.ensemble_demo import write_inputs
+    from bayespd.ensemble.demo_inputs import write_inputs
 
     out = Path(args.out or tempfile.mkdtemp(prefix="bayespd-demo-"))
     paths = write_inputs(out)

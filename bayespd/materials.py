@@ -33,7 +33,7 @@ from functools import cached_property
 import numpy as np
 import torch
 
-from bayespd.assembly import Gram, numeric_values, union_pattern
+from bayespd.linalg.assembly import Gram, numeric_values, union_pattern
 from bayespd.bonds import Bonds, partial_volume
 from bayespd.discretize import Particles
 from bayespd.influence import Constant, Influence

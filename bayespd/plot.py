@@ -1,4 +1,4 @@
-"""Figures of a crack ensemble (the Dataset of ``bayespd.infer.predictive.ensemble``):
+"""Figures of a crack ensemble (the Dataset of ``bayespd.ensemble.predictive.ensemble``):
 damage-probability map, path overlay with the credible band, failure-load histogram.
 Each function draws on ``ax`` (a new figure if None) and returns the axes."""
 from __future__ import annotations

@@ -9,10 +9,10 @@ import scipy.sparse as sp
 import torch
 
 from bayespd.bond_loops import components
-from bayespd.stiffness_solver import Assembly
+from bayespd.linalg.stiffness_solver import Assembly
 from bayespd.boundary import Constraints, Dirichlet, Load
 from bayespd.observe import LinearObservation
-from bayespd.sparse import ValuesForm, solve_form
+from bayespd.linalg.sparse import ValuesForm, solve_form
 
 
 class Scene:

@@ -38,8 +38,8 @@ def run_one(n: int, m: float, material: str, solver: str, threads: int, scene: b
     import torch
 
     import bayespd as bp
-    from bayespd import sparse
-    from bayespd.stiffness_solver import Assembly
+    from bayespd.linalg import sparse
+    from bayespd.linalg.stiffness_solver import Assembly
 
     torch.set_num_threads(threads)
     sparse.FACTOR_THREADS = threads
@@ -132,7 +132,7 @@ def main():
         n, m, material, solver = args.one
         print(json.dumps(run_one(int(n), float(m), material, solver, args.threads, args.scene)))
         return
-    from bayespd import sparse
+    from bayespd.linalg import sparse
     solvers = [s for s in args.solvers if s != "cholmod" or sparse.cholmod is not None]
     print(f"{'particles':>9} {'m':>3} {'mat':>4} {'solver':>9} {'nnz':>10} {'setup':>6} {'assem':>6} "
           f"{'factor':>7} {'solve':>6} {'total':>7} {'its':>4} {'resid':>8} {'peak MB':>8} {'load':>5}")

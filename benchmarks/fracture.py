@@ -1,5 +1,5 @@
 """Stochastic fracture realisations of the crack-ensemble plate (seed 002 eq 4 with damage,
-``bayespd.infer.ensemble_plate``), as a worker of the ensemble runs them (``realise_batch``: one
+``bayespd.scenes.notched_plate``), as a worker of the ensemble runs them (``realise_batch``: one
 torch and one BLAS thread): wall time against error for each way of treating the operator.
 
 A run is ``TANGENT:MAX_RANK``: the exact tangent (conjugate gradients preconditioned by the
@@ -9,7 +9,7 @@ bonds). The first run listed is the reference: with the same Brownian seeds, eve
 run's failure load factor, peak load and crack length are compared with it seed by seed,
 and the difference of their means with its Monte-Carlo standard error (the error an
 ensemble of that many realisations would see). The seeds run ``--batch`` at a time in
-lock-step (``ensemble_scene.realise_batch``, as the ensemble's tasks run them; the times
+lock-step (``scene.realise_batch``, as the ensemble's tasks run them; the times
 are each batch's wall and CPU time shared out over its realisations).
 
     python benchmarks/fracture.py [--side 100] [--runs exact:512 lagged:512] [--seeds 3 4] [--batch 8]
@@ -26,9 +26,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bayespd import sparse  # noqa: E402
-from bayespd.infer.ensemble_plate import notched_plate  # noqa: E402
-from bayespd.infer.ensemble_scene import BATCH, realise_batch  # noqa: E402
+from bayespd.linalg import sparse  # noqa: E402
+from bayespd.scenes.notched_plate import notched_plate  # noqa: E402
+from bayespd.ensemble.scene import BATCH, realise_batch  # noqa: E402
 from bayespd.solvers import fracture  # noqa: E402
 
 PARAMS = {"K": 2886.0, "s0": 0.0094}  # the posterior mean of experiments/crack_ensemble.py

@@ -23,7 +23,7 @@ from timing import best  # noqa: E402
 
 from bayespd import bond_loops  # noqa: E402
 from bayespd.damage import DamageIndex, crack_path  # noqa: E402
-from bayespd.infer.ensemble_plate import _unit_body, notched_plate  # noqa: E402
+from bayespd.scenes.notched_plate import _unit_body, notched_plate  # noqa: E402
 from bayespd.solvers import fracture  # noqa: E402
 from bayespd.solvers.linear import CONNECTED  # noqa: E402
 

@@ -42,7 +42,7 @@ from pyro.infer.autoguide.initialization import init_to_value  # noqa: E402
 import bayespd as bp  # noqa: E402
 from bayespd.infer import fit, to_inference_data  # noqa: E402
 from bayespd.infer.space import Unconstrained  # noqa: E402
-from models.elastic_plate import elastic_plate  # noqa: E402
+from bayespd.models.elastic_plate import elastic_plate  # noqa: E402
 from timing import best  # noqa: E402
 
 ESS_TARGET = 400

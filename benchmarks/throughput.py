@@ -36,8 +36,8 @@ def main():
     import torch
 
     import bayespd as bp
-    from bayespd.assembly import internal_force
-    from bayespd.stiffness_solver import Assembly
+    from bayespd.linalg.assembly import internal_force
+    from bayespd.linalg.stiffness_solver import Assembly
 
     torch.set_default_dtype(torch.float64)
     warnings.filterwarnings("ignore", message=".*[Ss]parse.*")

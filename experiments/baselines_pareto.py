@@ -40,7 +40,7 @@ from bayespd.inverse import tikhonov
 from bayespd.inverse.vfm import VirtualWork, identify, optimise
 from bayespd.reference import three_point_bending as tpb
 from bayespd.infer.calibration import central_interval
-from models.elastic_plate import elastic_plate
+from bayespd.models.elastic_plate import elastic_plate
 from vfm_three_point_bending import fields
 
 SEED = 7

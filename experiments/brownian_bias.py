@@ -41,7 +41,7 @@ from bayespd.infer import fit
 from bayespd.infer.likelihoods import NoiseCovariance, StationaryMarginal
 from bayespd.infer.pseudo_true import chain_kl, euler_maruyama_chain, kl_projection
 from bayespd.solvers import Langevin, karhunen_loeve, linear_elastic, white_noise
-from models.brownian_bias import stationary, trajectory
+from bayespd.models.brownian_bias import stationary, trajectory
 
 L, W, CLAMP, FORCE = 12.0, 6.0, 3.0, (60.0, 20.0)
 H, DELTA_MAX, EPS = 1.0, 3.0, 0.05

@@ -23,10 +23,10 @@ from common import run_dir, write_metrics
 from bayespd import cli
 from bayespd.damage import CriticalStretch, crack_path
 from bayespd.infer import load
-from bayespd.infer.ensemble_demo import write_inputs
-from bayespd.infer.ensemble_plate import notched_plate, plate_body
-from bayespd.infer.ensemble_scene import BATCH
-from bayespd.infer.predictive import ensemble
+from bayespd.ensemble.demo_inputs import write_inputs
+from bayespd.scenes.notched_plate import notched_plate, plate_body
+from bayespd.ensemble.scene import BATCH
+from bayespd.ensemble.predictive import ensemble
 from bayespd.plot import ensemble_figures
 from bayespd.solvers.quasistatic import quasi_static
 
@@ -57,7 +57,7 @@ def dask_run(tree, scene, m, workers, store):
     shutil.rmtree(store, ignore_errors=True)
     with distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                   dashboard_address=None) as cluster, distributed.Client(cluster) as client:
-        client.run(lambda: __import__("bayespd.infer.predictive"))  # imports are not part of the timing
+        client.run(lambda: __import__("bayespd.ensemble.predictive"))  # imports are not part of the timing
         start = time.perf_counter()
         ds = ensemble(tree, scene, m, n_mean=0, store=store, scheduler=client, progress=False)
         wall = time.perf_counter() - start

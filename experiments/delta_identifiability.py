@@ -34,7 +34,7 @@ import bayespd as bp
 from bayespd.infer import NotPositiveDefiniteHessian, fit
 from bayespd.observe import locate
 from bayespd.infer.calibration import central_interval
-from models.elastic_plate import default_priors, elastic_plate
+from bayespd.models.elastic_plate import default_priors, elastic_plate
 
 L, W, CLAMP = 30.0, 14.0, 3.0           # mm
 H_MODEL, DELTA_MAX = 1.0, 3.0           # calibrated model: delta ~ ScaledBeta(h, DELTA_MAX)

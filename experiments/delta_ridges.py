@@ -28,7 +28,7 @@ from pyro.infer.autoguide.initialization import init_to_median
 
 import common  # noqa: F401  (one torch thread; repository root on sys.path)
 from common import run_dir, write_metrics
-from scenes import calibration_scene as cs
+from bayespd.scenes import calibration_scene as cs
 from bayespd.infer.space import Unconstrained
 
 RULES = ("linear", "smooth")

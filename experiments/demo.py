@@ -19,7 +19,7 @@ import bayespd as bp
 from bayespd.infer import fit, save, summary, to_inference_data
 from bayespd.inverse import tikhonov
 from bayespd.observe import locate
-from models.elastic_plate import elastic_plate
+from bayespd.models.elastic_plate import elastic_plate
 
 L, W, R, THICK = 40.0, 20.0, 4.0, 1.0  # mm: plate with a central hole
 CLAMP, LOAD_DEPTH, FORCE = 6.0, 2.0, (200.0, 0.0)  # clamped layer, loaded layer (mm), N

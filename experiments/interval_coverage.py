@@ -20,7 +20,7 @@ import time
 import numpy as np
 
 import common  # noqa: F401  (one torch thread; repository root on sys.path)
-from scenes import calibration_scene as cs
+from bayespd.scenes import calibration_scene as cs
 from bayespd.infer.calibration import binomial_band, coverage, probability_in
 from common import run_dir, write_metrics
 

@@ -19,7 +19,7 @@ import time
 import numpy as np
 
 import common  # noqa: F401  (one torch thread; repository root on sys.path)
-from scenes import calibration_scene as cs
+from bayespd.scenes import calibration_scene as cs
 from bayespd.infer.calibration import binomial_band, chi2_power_overconfident, chi2_uniformity, rank_counts
 from common import run_dir, write_metrics
 

@@ -41,7 +41,7 @@ from bayespd.materials import NonFiniteParameterError
 from bayespd.nonlinear import NonlinearBonds
 from bayespd.solvers import (Langevin, NumericalInstabilityError, critical_time_step, linear_elastic,
                              lumped_mass, velocity_verlet, white_noise)
-from bayespd.sparse import NotPositiveDefiniteError
+from bayespd.linalg.sparse import NotPositiveDefiniteError
 
 EPS64 = float(np.finfo(np.float64).eps)
 EPS32 = float(np.finfo(np.float32).eps)

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from common import run_dir, write_metrics
-from scenes.tikhonov_square import DELTA, FORCE, H, K0, MU0, noisy_fine_data, square_scene
+from bayespd.scenes.tikhonov_square import DELTA, FORCE, H, K0, MU0, noisy_fine_data, square_scene
 
 from bayespd.inverse.psi_choice import discrepancy, lcurve, psi_sweep
 from bayespd.inverse.tikhonov import tikhonov

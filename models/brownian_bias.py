@@ -26,7 +26,7 @@ import pyro.distributions as dist
 import torch
 
 from bayespd.infer.likelihoods import NoiseCovariance, StationaryMarginal, euler_maruyama_transition
-from models.elastic_plate import default_priors
+from bayespd.models.elastic_plate import default_priors
 
 
 def _choose(defaults: dict, priors: dict | None) -> dict:

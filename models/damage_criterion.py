@@ -21,8 +21,8 @@ import pyro
 import pyro.distributions as dist
 import torch
 
-from models.observations import check_shape
-from models.priors import choose, positive, positive_support
+from bayespd.models.observations import check_shape
+from bayespd.models.priors import choose, positive, positive_support
 
 
 def damage_criterion(fracture, load_factors, observation, nominal: float, noise_scale: float,

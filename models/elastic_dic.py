@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 import bayespd as bp
-from models.elastic_plate import elastic_plate
+from bayespd.models.elastic_plate import elastic_plate
 
 
 def _grid_scene(scene):

@@ -11,7 +11,7 @@ from __future__ import annotations
 import pyro
 import pyro.distributions as dist
 
-from models.priors import choose, elastic_priors
+from bayespd.models.priors import choose, elastic_priors
 
 
 def default_priors(scene, nominal: dict, noise_scale: float) -> dict:

@@ -34,8 +34,8 @@ import torch
 from pyro.distributions import constraints
 
 from bayespd.gmrf import GMRF
-from models.observations import check_shape
-from models.priors import choose, fixed_params, positive, positive_support
+from bayespd.models.observations import check_shape
+from bayespd.models.priors import choose, fixed_params, positive, positive_support
 
 
 class GMRFDistribution(dist.TorchDistribution):

@@ -22,8 +22,8 @@ import pyro.distributions as dist
 import torch
 
 import bayespd as bp
-from models.observations import check_shape
-from models.priors import choose, fixed_params, positive, positive_support
+from bayespd.models.observations import check_shape
+from bayespd.models.priors import choose, fixed_params, positive, positive_support
 
 
 def aperture_observation(particles, above, below, component: int = 1) -> bp.OpeningObservation:

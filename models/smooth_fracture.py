@@ -25,7 +25,7 @@ import torch
 from bayespd.boundary import Constraints
 from bayespd.materials import BondBased
 from bayespd.nonlinear import NonlinearBonds
-from bayespd.sparse import ConvergenceError
+from bayespd.linalg.sparse import ConvergenceError
 
 
 class SmoothFracture:

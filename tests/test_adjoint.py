@@ -4,7 +4,7 @@ import pytest
 import torch
 
 import bayespd as bp
-from bayespd import sparse
+from bayespd.linalg import sparse
 from conftest import plate_scene
 
 # delta = 2.2 h keeps every bond away from a kink of the partial-volume weights (|xi| = delta +- h/2)

@@ -15,7 +15,7 @@ import torch
 import bayespd as bp
 from bayespd.infer.likelihoods import NoiseCovariance, StationaryMarginal, transition_log_likelihood
 from bayespd.solvers import Langevin, karhunen_loeve, linear_elastic, white_noise
-from models.brownian_bias import frames_data, stationary, trajectory
+from bayespd.models.brownian_bias import frames_data, stationary, trajectory
 
 EPS = 0.05
 TRUTH = {"K": 3000.0, "G": 1400.0, "delta": 2.2, "eta": 0.002, "sigma": 2e-4, "sigma_c": 0.3, "length": 1.5}

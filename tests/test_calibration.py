@@ -13,7 +13,7 @@ import torch
 import bayespd as bp
 from pyro import poutine
 from bayespd.infer import ScaledBeta, fit, load, save, summary
-from models.elastic_plate import elastic_plate
+from bayespd.models.elastic_plate import elastic_plate
 
 TRUTH = {"K": 3000.0, "G": 1400.0, "delta": 2.6}
 

@@ -95,7 +95,7 @@ def test_the_plate_model_pickles_after_its_scene_has_solved():
     import pickle
 
     from conftest import plate_scene
-    from models.elastic_plate import ElasticPlate, elastic_plate
+    from bayespd.models.elastic_plate import ElasticPlate, elastic_plate
 
     scene = plate_scene(nx=10, ny=6, delta_max=2.5)
     params = {"K": 3000.0, "G": 1400.0, "delta": 2.5}

@@ -11,11 +11,11 @@ import xarray as xr
 
 from bayespd import cli
 from bayespd.cli import main
-from bayespd.infer.ensemble_scene import realise
-from bayespd.infer.predictive import posterior_draws, realisation_inputs
+from bayespd.ensemble.scene import realise
+from bayespd.ensemble.predictive import posterior_draws, realisation_inputs
 from bayespd.infer import load
 from bayespd.infer.datatree import build_tree, save
-from bayespd.infer.ensemble_demo import write_inputs
+from bayespd.ensemble.demo_inputs import write_inputs
 
 
 @pytest.fixture(scope="module")
@@ -90,7 +90,7 @@ def test_predict_and_summary(inputs, laplace_dir, capsys):
 
 OWN_SCENE = (
     "import dataclasses\nfrom functools import partial\n"
-    "from bayespd.infer.ensemble_plate import notched_plate, plate_driver\n\n"
+    "from bayespd.scenes.notched_plate import notched_plate, plate_driver\n\n"
     "def build(params, side):\n    return plate_driver(params, side=side, h=1.0, m=3, sigma=100.0, relax=1e4, dt=1.0)\n\n"
     "def fracture_scene():\n"
     "    return dataclasses.replace(notched_plate(side=10.0, steps=10, sigma=100.0), build=partial(build, side=10.0))\n")

@@ -46,7 +46,7 @@ def test_nuts_intervals_cover(tmp_path_factory):
     """50 replications on the calibration plate (truth from the prior; NUTS fits shared with
     test_sbc.py within a session): each parameter's coverage lies in the 99 % range of
     Binomial(50, 0.9) / 50, i.e. [0.78, 1.0] (sd sqrt(0.09 / 50) = 0.042)."""
-    from scenes import calibration_scene as cs
+    from bayespd.scenes import calibration_scene as cs
 
     n = 50
     records = cs.replications("nuts", n, root=tmp_path_factory.getbasetemp() / "calibration", log=None)

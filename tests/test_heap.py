@@ -12,7 +12,7 @@ import pytest
 
 PROBE = """
 import ctypes, json, numpy as np
-from bayespd.infer.heap import keep_temporaries_on_heap
+from bayespd.ensemble.heap import keep_temporaries_on_heap
 
 class Info(ctypes.Structure):
     _fields_ = [(name, ctypes.c_size_t) for name in ("arena", "ordblks", "smblks", "hblks", "hblkhd",

@@ -15,7 +15,7 @@ from scipy import stats
 from torch.distributions import biject_to, constraints
 
 from bayespd.infer import ChainDivergedError, ScaledBeta, fit, load, save, summary, to_inference_data
-from bayespd.sparse import NotPositiveDefiniteError
+from bayespd.linalg.sparse import NotPositiveDefiniteError
 
 N, PRIOR_SD, LOW, HIGH = 50, 10.0, 0.5, 2.0
 DRAWS = 300  # per chain, after as many warmup steps
@@ -326,7 +326,7 @@ def test_bad_data_is_refused_before_sampling(y):
 @pytest.fixture(scope="module")
 def plate():
     import bayespd as bp
-    from models.elastic_plate import elastic_plate
+    from bayespd.models.elastic_plate import elastic_plate
 
     p = bp.grid_2d(8.0, 4.0, 1.0)
     scene = bp.Scene(bp.LPS(p, bp.find_bonds(p, 2.5)), [bp.Dirichlet.layer(p, "left", 2.5)],

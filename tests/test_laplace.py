@@ -17,7 +17,7 @@ from bayespd.infer import NotPositiveDefiniteHessian, ScaledBeta, fit
 from bayespd.infer import modes as modes_table
 from bayespd.infer.laplace import exact_hessian
 from bayespd.infer.space import Unconstrained
-from models.elastic_plate import elastic_plate
+from bayespd.models.elastic_plate import elastic_plate
 
 A = torch.tensor([[1.0, 0.5, 0.0], [0.2, 1.0, -0.3], [0.0, 0.4, 1.0], [1.0, -1.0, 0.5], [0.3, 0.3, 0.3]])
 M0, S0 = torch.tensor([0.5, -1.0, 2.0]), torch.tensor([[2.0, 0.3, 0.0], [0.3, 1.0, 0.2], [0.0, 0.2, 0.5]])

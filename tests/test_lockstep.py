@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from bayespd.infer.ensemble_plate import notched_plate
-from bayespd.infer.ensemble_scene import realise, realise_batch
-from bayespd.solvers import lockstep, trailing
-from bayespd.solvers.lockstep import LockStep
+from bayespd.scenes.notched_plate import notched_plate
+from bayespd.ensemble.scene import realise, realise_batch
+from bayespd.linalg import lockstep, trailing
+from bayespd.linalg.lockstep import LockStep
 
 N = 60
 A = np.eye(N) * 4 + np.diag(np.full(N - 1, -1.0), 1) + np.diag(np.full(N - 1, -1.0), -1)

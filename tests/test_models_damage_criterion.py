@@ -15,9 +15,9 @@ import bayespd as bp
 from bayespd.damage import SmoothStep
 from bayespd.infer import fit
 from bayespd.solvers.quasistatic import LoadedBody, quasi_static
-from models.damage_criterion import damage_criterion
-from models.load_from_aperture import aperture_observation
-from models.smooth_fracture import SmoothFracture
+from bayespd.models.damage_criterion import damage_criterion
+from bayespd.models.load_from_aperture import aperture_observation
+from bayespd.models.smooth_fracture import SmoothFracture
 
 W, HEIGHT, DELTA, A, Y_CRACK, TOP = 10.0, 12.0, 3.0, 4.0, 6.0, 0.06
 S0, ETA = 0.01, 0.004

@@ -12,7 +12,7 @@ import torch
 
 import bayespd as bp
 from bayespd.infer import ScaledBeta, fit
-from models.elastic_dic import dic_data, elastic_dic
+from bayespd.models.elastic_dic import dic_data, elastic_dic
 
 TRUTH = {"K": 3000.0, "G": 1400.0, "delta": 2.6}
 POINTS = bp.grid_points((3.2, 0.6), 0.8, (11, 7))

@@ -15,8 +15,8 @@ import bayespd as bp
 from bayespd.gmrf import GMRF
 from bayespd.infer import fit
 from bayespd.inverse.tikhonov import tikhonov
-from experiments.scenes.tikhonov_square import MU0, SIDE, graded_moduli, square_scene
-from models.heterogeneous_field import heterogeneous_field, tikhonov_settings
+from bayespd.scenes.tikhonov_square import MU0, SIDE, graded_moduli, square_scene
+from bayespd.models.heterogeneous_field import heterogeneous_field, tikhonov_settings
 
 N_SIDE = 6
 H = SIDE / (N_SIDE - 1)

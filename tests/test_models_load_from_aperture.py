@@ -15,9 +15,9 @@ import pytest
 import torch
 
 import bayespd as bp
-import bayespd.sparse
+import bayespd.linalg.sparse
 from bayespd.infer import fit
-from models.load_from_aperture import aperture_observation, load_from_aperture
+from bayespd.models.load_from_aperture import aperture_observation, load_from_aperture
 
 SIDE, A, Y_CRACK, DELTA, F_TRUE = 2.4, 0.6, 1.2, 0.3, 60.0
 MODULI = {"K": 66700.0, "G": 40000.0}
@@ -36,9 +36,9 @@ def plate(h):
 @pytest.fixture(scope="module", autouse=True)
 def one_factor_thread():
     """Threaded CHOLMOD crawls on a shared 2-core machine (see experiments/tikhonov_aperture.py)."""
-    before, bayespd.sparse.FACTOR_THREADS = bayespd.sparse.FACTOR_THREADS, 1
+    before, bayespd.linalg.sparse.FACTOR_THREADS = bayespd.linalg.sparse.FACTOR_THREADS, 1
     yield
-    bayespd.sparse.FACTOR_THREADS = before
+    bayespd.linalg.sparse.FACTOR_THREADS = before
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,7 @@ import torch
 import bayespd as bp
 from bayespd.observe import (GridObservation, ParticleObservation, edge_mask, finite_mask, grid_points,
                              model_data)
-from models.elastic_plate import elastic_plate
+from bayespd.models.elastic_plate import elastic_plate
 
 
 def bilinear(x, coeffs):

@@ -5,16 +5,16 @@ import pytest
 import torch
 import xarray as xr
 
-from bayespd.infer import predictive
+from bayespd.ensemble import predictive
 from bayespd.infer.datatree import build_tree
 from bayespd.damage import CriticalStretch
-from bayespd.infer.ensemble_plate import _unit_lambda_min, notched_plate, plate_body
+from bayespd.scenes.notched_plate import _unit_lambda_min, notched_plate, plate_body
 from bayespd.solvers import white_noise
 from bayespd.solvers.fracture import StochasticFracture
-from bayespd.infer.ensemble_scene import FractureScene, realise
-from bayespd.infer.ensemble_stats import TIMES, aggregate, load_step_lengths, offsets
-from bayespd.infer.ensemble_store import PlanMismatchError
-from bayespd.infer.predictive import ensemble, pending, posterior_draws, realisation_inputs, rerun
+from bayespd.ensemble.scene import FractureScene, realise
+from bayespd.ensemble.stats import TIMES, aggregate, load_step_lengths, offsets
+from bayespd.ensemble.store import PlanMismatchError
+from bayespd.ensemble.predictive import ensemble, pending, posterior_draws, realisation_inputs, rerun
 
 K0, S0 = 3000.0, 0.0094
 
@@ -41,7 +41,7 @@ def noisy_scene():
 
 def test_the_unit_body_runs_the_dynamics_of_every_modulus(noisy_scene):
     """Eq 4 with a force linear in K and eta proportional to K does not depend on K
-    (``ensemble_plate``): the driver's unit body at temperature eta / K follows the body at
+    (``bayespd.scenes.notched_plate``): the driver's unit body at temperature eta / K follows the body at
     K at temperature eta = sigma^2 / M, M dt K lambda_min(A; 1) = relax, bond for bond,
     with u equal to rounding and its reactions times K equal to that body's."""
     K, s0, sigma, relax, dt = 2500.0, 0.0094, 100.0, 1e4, 1.0

@@ -6,9 +6,9 @@ import pytest
 import xarray as xr
 
 from bayespd.infer.datatree import build_tree
-from bayespd.infer.ensemble_plate import notched_plate
-from bayespd.infer.ensemble_stats import TIMES
-from bayespd.infer.predictive import ensemble
+from bayespd.scenes.notched_plate import notched_plate
+from bayespd.ensemble.stats import TIMES
+from bayespd.ensemble.predictive import ensemble
 
 distributed = pytest.importorskip("distributed")
 

@@ -49,7 +49,7 @@ def test_nuts_sbc_on_calibration_plate(tmp_path_factory):
     """50 prior draws of (K, G, sigma), one NUTS fit each (the settings of experiments/sbc.py):
     each parameter's ranks pass chi-square uniformity at level 0.01. Power of that test
     against a posterior with half the true sd: 0.76 (chi2_power_overconfident(50, 5, 0.5))."""
-    from scenes import calibration_scene as cs
+    from bayespd.scenes import calibration_scene as cs
 
     n = 50
     records = cs.replications("nuts", n, root=tmp_path_factory.getbasetemp() / "calibration", log=None)

@@ -8,9 +8,9 @@ import scipy.sparse as sp
 import torch
 
 import bayespd as bp
-from bayespd import sparse
-from bayespd.assembly import Gram, internal_force, numeric_values, union_pattern
-from bayespd.stiffness_solver import Assembly
+from bayespd.linalg import sparse
+from bayespd.linalg.assembly import Gram, internal_force, numeric_values, union_pattern
+from bayespd.linalg.stiffness_solver import Assembly
 
 
 def lps_terms(nx=14, ny=8, m=2.6, delta=2.4, plane="stress"):

@@ -1,4 +1,4 @@
-"""Solves after a local change (``bayespd.solvers.woodbury``): the Woodbury update of a factor
+"""Solves after a local change (``bayespd.linalg.woodbury``): the Woodbury update of a factor
 equals a fresh factorisation of the changed matrix, refuses a change that makes it
 indefinite, and conjugate gradients on the exact tangent, preconditioned by a stale factor,
 converge within the iteration bound of their condition number; a ``LoadedBody``'s change
@@ -16,12 +16,12 @@ import bayespd as bp
 from bayespd.solvers.fracture import StochasticFracture
 from bayespd.damage import CriticalStretch
 from bayespd.solvers import white_noise
-from bayespd.solvers.linear import shifted_factor, spd_factor
+from bayespd.linalg.factors import shifted_factor, spd_factor
 from bayespd.solvers.quasistatic import LoadedBody
-from bayespd.solvers import trailing, woodbury
+from bayespd.linalg import trailing, woodbury
 from bayespd import bond_loops
-from bayespd.solvers.woodbury import LocallyUpdated, Refined
-from bayespd.sparse import NotPositiveDefiniteError
+from bayespd.linalg.woodbury import LocallyUpdated, Refined
+from bayespd.linalg.sparse import NotPositiveDefiniteError
 
 SIDE, H, DELTA = 12.0, 1.0, 3.0
 

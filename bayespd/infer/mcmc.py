@@ -43,7 +43,7 @@ from tqdm.auto import tqdm
 
 from bayespd.atomic import atomic_path
 from bayespd.materials import ParameterRangeError
-from bayespd.sparse import NotPositiveDefiniteError
+from bayespd.linalg.sparse import NotPositiveDefiniteError
 
 from .kernels import KERNELS
 from .space import max_plate_nesting

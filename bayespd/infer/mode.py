@@ -20,7 +20,7 @@ from scipy.optimize import minimize
 from tqdm.auto import tqdm
 
 from bayespd.materials import ParameterRangeError
-from bayespd.sparse import NotPositiveDefiniteError
+from bayespd.linalg.sparse import NotPositiveDefiniteError
 
 from .space import init_trace
 

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from scipy.optimize import minimize
 
-from bayespd.sparse import ConvergenceError
+from bayespd.linalg.sparse import ConvergenceError
 
 
 def kl_projection(kl, init, bounds: dict, gtol: float = 1e-9, max_iter: int = 500):

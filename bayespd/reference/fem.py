@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from bayespd.sparse import Pattern
+from bayespd.linalg.sparse import Pattern
 
 
 def require_skfem():

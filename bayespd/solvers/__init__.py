@@ -4,7 +4,7 @@ breaking (seed 004 §5.2) and the stochastic fracture driver."""
 from bayespd.solvers.dynamics import (NumericalInstabilityError, Trajectory, critical_time_step,
                                       lumped_mass, stable_time_step, velocity_verlet)
 from bayespd.solvers.langevin import Langevin
-from bayespd.solvers.linear import LinearForce, largest_eigenvalue, linear_elastic, spd_factor
+from bayespd.solvers.linear import LinearForce, largest_eigenvalue, linear_elastic
 from bayespd.solvers.noise import Covariance, KLCovariance, karhunen_loeve, white_noise
 from bayespd.solvers.quasistatic import LoadedBody, QuasiStaticResult, equilibrium, quasi_static
 from bayespd.solvers.fracture import Realisation, StochasticFracture
@@ -12,6 +12,6 @@ from bayespd.solvers.fracture import Realisation, StochasticFracture
 __all__ = [
     "NumericalInstabilityError", "Trajectory", "critical_time_step", "lumped_mass",
     "stable_time_step", "velocity_verlet", "Langevin", "LinearForce", "largest_eigenvalue",
-    "linear_elastic", "spd_factor", "Covariance", "KLCovariance", "karhunen_loeve", "white_noise",
+    "linear_elastic", "Covariance", "KLCovariance", "karhunen_loeve", "white_noise",
     "LoadedBody", "QuasiStaticResult", "equilibrium", "quasi_static", "Realisation", "StochasticFracture",
 ]

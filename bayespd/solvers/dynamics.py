@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from bayespd.assembly import to_numpy
+from bayespd.linalg.assembly import to_numpy
 from bayespd.solvers.linear import as_matvec, hessian_operator, largest_eigenvalue
 
 

@@ -43,12 +43,12 @@ from scipy.spatial import cKDTree
 
 from bayespd import bond_loops
 from bayespd.damage import DamageIndex, crack_length, crack_path
-from bayespd.solvers import trailing
+from bayespd.linalg import trailing
 from bayespd.solvers.dynamics import NumericalInstabilityError
 from bayespd.solvers.langevin import Langevin
 from bayespd.solvers.noise import Covariance
 from bayespd.solvers.quasistatic import LoadedBody
-from bayespd.solvers.woodbury import LocallyUpdated, Refined
+from bayespd.linalg.woodbury import LocallyUpdated, Refined
 
 
 COLUMN_TILE = 4  # side (in spacings h) of the tiles of dofs whose Woodbury columns are solved together
@@ -99,7 +99,7 @@ class StochasticFracture:
     theta of the scheme (1: linearly implicit Euler, robust for the nonlinear force).
     ``reaction_scale`` multiplies the recorded reactions: a material whose force is linear in
     a modulus K runs as the unit-modulus body at temperature eta / K (the same dynamics), whose
-    factor then serves every K (``ensemble_plate``), and reports K times its reactions."""
+    factor then serves every K (``bayespd.scenes.notched_plate``), and reports K times its reactions."""
 
     def __init__(self, body: LoadedBody, damage, covariance: Covariance, eta: float, theta: float = 1.0,
                  reaction_scale: float = 1.0):

@@ -37,7 +37,7 @@ import torch
 
 from bayespd.solvers.dynamics import (GrowthMonitor, NumericalInstabilityError, Trajectory, _check_steps,
                                       _Saver, _fix)
-from bayespd.assembly import to_numpy
+from bayespd.linalg.assembly import to_numpy
 from bayespd.solvers.linear import as_matvec, hessian_operator, largest_eigenvalue
 
 

@@ -3,8 +3,7 @@
 ``LinearForce`` is f(u) = p - A u with A = K + eps I: the force of the potential of seed 002
 eq 3 with the linearised bond energy, V(u) = u^T K u / 2 - p^T u + (eps / 2) u^T u, of the
 intact or the damaged body (``damaged_terms``).
-``largest_eigenvalue`` (Lanczos) gives stable time steps; ``spd_factor`` factorises a scipy
-SPD matrix with the project's sparse backends (CHOLMOD or SuperLU).
+``largest_eigenvalue`` (Lanczos) gives stable time steps; ``bayespd.linalg.factors`` factorises.
 """
 from __future__ import annotations
 
@@ -13,11 +12,12 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 
-from bayespd.assembly import numeric_values, to_numpy
+from bayespd.linalg.assembly import numeric_values, to_numpy
 from bayespd.bond_loops import components
 from bayespd.materials import _C_DEV, LPS
 from bayespd.nonlinear import M_FLOOR
-from bayespd.sparse import Factor, NotPositiveDefiniteError, Pattern
+from bayespd.linalg.factors import spd_factor
+from bayespd.linalg.sparse import NotPositiveDefiniteError
 
 CONNECTED = 1e-6  # bonds with a smaller intact fraction no longer hold a piece in place
 
@@ -172,22 +172,3 @@ def hessian_operator(force, u: torch.Tensor, h: float | None = None):
         return to_numpy((f0 - force(u + h * v)) / h)
 
     return matvec
-
-
-def shifted_factor(A, s: np.ndarray, b: float) -> Factor:
-    """A factor of diag(s) + b A for a sparse SPD A, or made by A itself when it knows how
-    (``woodbury.LocallyUpdated``: from the factor before a local change)."""
-    if hasattr(A, "shifted_factor"):
-        return A.shifted_factor(s, b)
-    return spd_factor(sp.diags(s) + b * A)
-
-
-def spd_factor(A, ordering: str | None = None) -> Factor:
-    """A factor (``.solve(numpy b)``) of a symmetric positive-definite scipy matrix
-    (``ordering``: CHOLMOD's fill-reducing ordering, see ``Pattern.factorize``)."""
-    A = sp.csc_matrix(A, dtype=np.float64)
-    A.sum_duplicates()
-    A.sort_indices()
-    n = A.shape[0]
-    cols = np.repeat(np.arange(n), np.diff(A.indptr))
-    return Pattern(A.indices, cols, n).factorize(torch.from_numpy(A.data), ordering=ordering)

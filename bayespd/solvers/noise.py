@@ -16,8 +16,8 @@ import scipy.sparse.linalg as spla
 import torch
 from scipy.spatial import cKDTree
 
-from bayespd.assembly import to_numpy
-from bayespd.solvers.linear import shifted_factor
+from bayespd.linalg.assembly import to_numpy
+from bayespd.linalg.factors import shifted_factor
 
 
 class Covariance:

@@ -35,15 +35,15 @@ import scipy.sparse as sp
 import torch
 
 from bayespd import bond_loops
-from bayespd.assembly import numeric_values
+from bayespd.linalg.assembly import numeric_values
 from bayespd.boundary import Constraints
 from bayespd.damage import DamageIndex, DamageODE
 from bayespd.materials import BondBased
 from bayespd.nonlinear import NonlinearBonds
 from bayespd.solvers.connectivity import FloatingPieces
 from bayespd.solvers.linear import damaged_terms
-from bayespd.solvers.woodbury import LocalChange
-from bayespd.sparse import ConvergenceError, NotPositiveDefiniteError
+from bayespd.linalg.woodbury import LocalChange
+from bayespd.linalg.sparse import ConvergenceError, NotPositiveDefiniteError
 
 MECHANISM_SHIFT = 1e-8  # relative diagonal shift of a singular tangent (see LoadedBody.tangent)
 

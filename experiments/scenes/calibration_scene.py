@@ -45,7 +45,7 @@ from bayespd.infer.calibration import central_interval, rank, thin
 
 import bayespd as bp
 from bayespd.infer import NotPositiveDefiniteHessian, fit
-from models.elastic_plate import elastic_plate
+from bayespd.models.elastic_plate import elastic_plate
 
 NX, NY, H, DELTA_MAX = 8, 8, 1.0, 2.5
 NOMINAL = {"K": 3000.0, "G": 1200.0}

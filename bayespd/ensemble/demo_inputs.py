@@ -60,7 +60,7 @@ def fixed():
 
 SCENE_PY = '''"""SCENE.py for `bayespd predict`: fracture_scene() returns a FractureScene whose params are
 posterior variables of the calibration (here K and s0)."""
-from bayespd.infer.ensemble_plate import notched_plate
+from bayespd.scenes.notched_plate import notched_plate
 
 
 def fracture_scene():

@@ -2,7 +2,7 @@
 arrives: in this process (``workers=1``), over a local process pool (default, spawned
 workers, so no state leaks in from the parent), or over ``dask.distributed`` (a ``Client``
 or a scheduler address). The caller writes each result as it comes (see
-``ensemble_store``), so a crash loses only the tasks in flight.
+``store``), so a crash loses only the tasks in flight.
 """
 from __future__ import annotations
 

@@ -22,7 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from bayespd.sparse import Pattern
+from bayespd.linalg.sparse import Pattern
 
 _CHUNK = 1 << 22  # index entries handled at once when expanding particle blocks to dofs
 

@@ -23,8 +23,8 @@ import numpy as np
 import scipy.linalg.lapack as lapack
 import scipy.sparse as sp
 
-from bayespd import sparse
-from bayespd.solvers import lockstep
+from bayespd.linalg import sparse
+from bayespd.linalg import lockstep
 
 
 _ORDERINGS: dict = {}  # pattern digest -> METIS permutation (the latest four; METIS is deterministic)

@@ -14,7 +14,7 @@ so second derivatives and Hessian-vector products exist.
 Backends: CHOLMOD (scikit-sparse) when importable, analysing the pattern once and
 refactorising per value; else scipy's SuperLU in symmetric mode with an AMD ordering.
 ``PCGFactor`` is a preconditioned conjugate-gradient "factor" with the same ``solve``
-interface, for problems too large to factorise (see ``bayespd.stiffness_solver.Assembly``); it raises
+interface, for problems too large to factorise (see ``bayespd.linalg.stiffness_solver.Assembly``); it raises
 ``ConvergenceError`` when it does not reach its tolerance.
 
 Threads: CHOLMOD's supernodal factorisation runs in OpenBLAS; ``blas_threads(n)`` sets how

@@ -91,7 +91,7 @@ def stations_for(scene, paths, count: int = 61) -> np.ndarray:
 
 def aggregate(results, scene, seed: int) -> xr.Dataset:
     """``results``: (kind, i, result, params, draw, brownian seed) per realisation, ``result``
-    from ``ensemble_scene.realise`` or ``{"error": message}`` (kept as a failed realisation)."""
+    from ``scene.realise`` or ``{"error": message}`` (kept as a failed realisation)."""
     ok = [r for r in results if "error" not in r[2]]
     if not ok:
         raise ValueError("every realisation failed (see the .err.json files in the store): "

@@ -1,8 +1,8 @@
 """Posterior-predictive crack ensembles (seed 002 §3: "a distribution of crack paths").
 
 ``ensemble(tree, scene, n, store=DIR)`` draws pairs (posterior draw, Brownian seed), runs the
-stochastic fracture model of seed 002 eq 4 for each (``ensemble_scene.realise``) and
-aggregates the results (``ensemble_stats.aggregate``). Two ensembles are run:
+stochastic fracture model of seed 002 eq 4 for each (``scene.realise``) and
+aggregates the results (``stats.aggregate``). Two ensembles are run:
 
 * ``posterior``: realisation i takes draw d_i of the fitted tree's ``posterior`` group and
   Brownian seed b_i; its spread is the total (epistemic + aleatoric) predictive spread;
@@ -12,7 +12,7 @@ aggregates the results (``ensemble_stats.aggregate``). Two ensembles are run:
 (d_i, b_i) depend only on (seed, i) (``numpy.random.SeedSequence([seed, i])``), so any single
 realisation can be re-run exactly (``rerun``), a larger n extends a smaller one,
 and results do not depend on where, in which order or in which company realisations run.
-A task runs BATCH realisations in lock-step (``ensemble_scene.realise_batch``: they share the
+A task runs BATCH realisations in lock-step (``scene.realise_batch``: they share the
 half solves of one factor, bit for bit as if alone); each result is written to the store as
 its batch arrives, so a crash loses the batches in flight, and a re-run skips finished
 realisations. No Pyro here.
@@ -30,10 +30,10 @@ from functools import partial
 
 import numpy as np
 
-from .ensemble_exec import check_workers, run_tasks
-from .ensemble_scene import BATCH, FractureScene, realise, realise_batch
-from .ensemble_stats import aggregate
-from .ensemble_store import EnsembleStore
+from .execution import check_workers, run_tasks
+from .scene import BATCH, FractureScene, realise, realise_batch
+from .stats import aggregate
+from .store import EnsembleStore
 
 KINDS = ("posterior", "mean")
 
@@ -73,7 +73,7 @@ def realisation_inputs(draws: dict, seed: int, i: int, kind: str = "posterior"):
 
 
 def rerun(tree, scene: FractureScene, i: int, kind: str = "posterior", seed: int = 0, device=None) -> dict:
-    """Realisation ``i`` of an ensemble run again, bit for bit (``ensemble_scene.realise``)."""
+    """Realisation ``i`` of an ensemble run again, bit for bit (``scene.realise``)."""
     params, _, brownian = realisation_inputs(posterior_draws(tree, scene.params), seed, i, kind)
     return realise(scene, params, brownian, device)
 
@@ -128,7 +128,7 @@ def _prepare(tree, scene, n, n_mean, seed, store):
         raise ValueError("ask for at least 2 realisations per ensemble (n_mean may be 0): "
                          "a spread needs two")
     if not isinstance(scene, FractureScene):
-        raise ValueError("scene must be a FractureScene (see bayespd.infer.ensemble_scene)")
+        raise ValueError("scene must be a FractureScene (see bayespd.ensemble.scene)")
     draws = posterior_draws(tree, scene.params)
     st = EnsembleStore(store, _plan(scene, draws, seed))
     inputs = {(kind, i): realisation_inputs(draws, seed, i, kind)

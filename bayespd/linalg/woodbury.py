@@ -44,9 +44,9 @@ import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 
-from bayespd.solvers import trailing
-from bayespd.solvers.linear import spd_factor
-from bayespd.sparse import Factor, NotPositiveDefiniteError, PCGFactor
+from bayespd.linalg import trailing
+from bayespd.linalg.factors import spd_factor
+from bayespd.linalg.sparse import Factor, NotPositiveDefiniteError, PCGFactor
 
 
 @dataclass(frozen=True)

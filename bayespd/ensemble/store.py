@@ -6,7 +6,7 @@ re-run skips those already on disk.
     store/posterior-00017.npz  realisation 17 of the posterior ensemble
     store/mean-00003.npz       realisation 3 with parameters at the posterior mean
     store/mean-00005.err.json  a realisation that failed (kept: it would fail again)
-    store/ensemble.nc          the aggregate (``ensemble_stats.aggregate``)
+    store/ensemble.nc          the aggregate (``stats.aggregate``)
 """
 from __future__ import annotations
 

@@ -12,8 +12,8 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from bayespd.assembly import Gram, numeric_values, to_numpy, union_pattern
-from bayespd.sparse import (NotPositiveDefiniteError, Pattern, PCGFactor, blas_threads, cholmod,
+from bayespd.linalg.assembly import Gram, numeric_values, to_numpy, union_pattern
+from bayespd.linalg.sparse import (NotPositiveDefiniteError, Pattern, PCGFactor, blas_threads, cholmod,
                             default_backend)
 
 

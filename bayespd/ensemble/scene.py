@@ -29,11 +29,11 @@ import numpy as np
 import torch
 from threadpoolctl import threadpool_limits
 
-from bayespd import sparse
+from bayespd.linalg import sparse
 from bayespd.damage import crack_length
-from bayespd.infer.heap import keep_temporaries_on_heap
+from bayespd.ensemble.heap import keep_temporaries_on_heap
 from bayespd.solvers.fracture import check_tangent
-from bayespd.solvers.lockstep import LockStep
+from bayespd.linalg.lockstep import LockStep
 
 
 @dataclass(frozen=True)
@@ -107,7 +107,7 @@ def realise_batch(scene: FractureScene, items: list, device=None) -> list:
     workers sharing the cores do not oversubscribe them, which measured 2x slower with two
     workers on two cores), and large temporaries kept on the heap where the worker's
     environment fixed glibc's thresholds (Dask's: 2.3x slower otherwise,
-    ``bayespd.infer.heap``). Returns, per item, float64 / int64 numpy arrays (see
+    ``bayespd.ensemble.heap``). Returns, per item, float64 / int64 numpy arrays (see
     ``Realisation``) plus the derived peak load, failure load factor, first-failure time and
     final crack length, and its share of the batch's wall and CPU time; or the exception its
     run raised."""

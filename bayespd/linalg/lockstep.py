@@ -1,7 +1,7 @@
 """Runs in lock-step: several jobs in one process share the half solves of one factor.
 
 The realisations of a fracture ensemble start from one step operator per process
-(``ensemble_plate``, ``trailing.shared``), and each step of each does one forward and one
+(``bayespd.scenes.notched_plate``, ``trailing.shared``), and each step of each does one forward and one
 backward half solve with its factor. A block of W columns costs little more than one column
 (CHOLMOD, 18.8k dofs: 8 columns 16.8 ms, one 7.4 ms), so ``LockStep(W).run(jobs)`` runs the
 jobs as cooperative threads, one at a time: a job runs until its next half solve of one vector

@@ -25,7 +25,7 @@ from bayespd.solvers import white_noise
 from bayespd.solvers.fracture import StochasticFracture
 from bayespd.solvers.quasistatic import LoadedBody, quasi_static
 
-from .ensemble_scene import FractureScene
+from bayespd.ensemble.scene import FractureScene
 
 
 @lru_cache(maxsize=4)
