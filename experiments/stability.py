@@ -41,6 +41,7 @@ from bayespd.materials import NonFiniteParameterError
 from bayespd.nonlinear import NonlinearBonds
 from bayespd.solvers import (Langevin, NumericalInstabilityError, critical_time_step, linear_elastic,
                              lumped_mass, velocity_verlet, white_noise)
+from bayespd.linalg.factors import spd_factor
 from bayespd.linalg.sparse import NotPositiveDefiniteError
 
 EPS64 = float(np.finfo(np.float64).eps)
@@ -285,7 +286,7 @@ def isolated(quick: bool) -> dict:
     keep = np.ones(F0.n, dtype=bool)
     pos = np.searchsorted(c.free_dofs, [2 * k, 2 * k + 1])
     keep[pos] = False
-    ref = bp.solvers.spd_factor(F0.matrix[keep][:, keep]).solve(F0.load.numpy()[keep])
+    ref = spd_factor(F0.matrix[keep][:, keep]).solve(F0.load.numpy()[keep])
     lam_min = float(sla.eigsh(F0.matrix[keep][:, keep].tocsc(), k=1, sigma=0, return_eigenvectors=False)[0])
     rows = []
     for eps in (1e-2, 1e-4, 1e-6, 1e-8):
