@@ -109,7 +109,7 @@ def test_unconstrained_pcg_is_not_silent():
 
 @pytest.mark.skipif(sparse._OPENBLAS is None, reason="CHOLMOD's OpenBLAS is not loaded")
 def test_factor_threads_keep_a_worker_limit():
-    """FACTOR_THREADS = None leaves a threadpoolctl limit in place (MCMC chain workers limit
+    """factor_threads = None leaves a threadpoolctl limit in place (MCMC chain workers limit
     every BLAS to their share of the cores); a number sets the count and restores it after."""
     from threadpoolctl import threadpool_limits
 
