@@ -1,6 +1,6 @@
 """The settings of the linear algebra, in one frozen ``LinalgSettings``: the threads it takes
-and CHOLMOD's fill-reducing ordering. They change speed, and (the BLAS thread count) the
-order of sums inside a factorisation, never what is solved.
+and CHOLMOD's fill-reducing ordering. They change speed and rounding (the order of sums in a
+factorisation), never what is solved.
 
     from bayespd import linalg
     linalg.set_defaults(factor_threads=1)       # for the rest of the process (a script)
