@@ -5,14 +5,14 @@ factor per process (``trailing.shared``), each step of each doing one forward an
 backward half solve with it. A block of W columns costs little more than one column, so
 ``LockStep(W).run(jobs)`` runs the jobs as cooperative threads, one at a time: a job runs
 until its next half solve of one vector (``TrailingFactor.forward`` / ``backward``, which
-ask ``current()``) and waits; when every live job waits, the solves are done W columns to a call (zeros fill a block) and the jobs
-resume in turn. As only one job runs at any time, they may share bodies and caches, and
-nothing contends for the interpreter.
+ask ``current()``) and waits; when every live job waits, the solves are done W columns to a
+call (zeros fill a block) and the jobs resume in turn. As only one job runs at any time,
+they may share bodies and caches, and nothing contends for the interpreter.
 
 Bit for bit: a column's result does not depend on the other columns of its block or on its
 place there, but it does depend on the block's width (BLAS-3 kernels add in another order
 than BLAS-2 ones), so every solve of a lock-step run is done in blocks of exactly W columns:
-a job gives the same bits alone as in any company (tests/linalg/test_lockstep.py).
+a job gives the same bits alone as in any company (tests/test_lockstep.py).
 """
 from __future__ import annotations
 

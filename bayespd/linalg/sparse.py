@@ -118,7 +118,8 @@ class Pattern:
         self.rows = np.asarray(self.rows, dtype=np.int64)
         self.cols = np.asarray(self.cols, dtype=np.int64)
         b = self.blocks
-        if b is not None and (b.size * (len(b.indptr) - 1) != self.n or b.size ** 2 * len(b.indices) != self.nnz):
+        if b is not None and (b.size * (len(b.indptr) - 1) != self.n
+                              or b.size ** 2 * len(b.indices) != self.nnz):
             raise ValueError("blocks must describe this pattern's node blocks")
         self._strict = True
         step = 1 << 20  # O(nnz) check in chunks (no sort, no large temporaries)

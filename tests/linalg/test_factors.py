@@ -19,7 +19,8 @@ def test_spd_factor_of_an_unsorted_matrix_with_duplicates():
     coo = spd.tocoo()
     order = np.random.default_rng(0).permutation(coo.nnz)
     r, c, v = coo.row[order], coo.col[order], coo.data[order]
-    twice = sp.coo_matrix((np.concatenate([v, v]), (np.concatenate([r, r]), np.concatenate([c, c]))), shape=spd.shape)
+    r, c, v = (np.concatenate([a, a]) for a in (r, c, v))
+    twice = sp.coo_matrix((v, (r, c)), shape=spd.shape)
     b = np.random.default_rng(1).standard_normal((spd.shape[0], 2))
     x = spd_factor(twice).solve(b)
     assert np.linalg.norm(2 * (spd @ x) - b) <= 1e-12 * np.linalg.norm(b)

@@ -73,7 +73,8 @@ def test_pattern_declares_its_node_blocks():
     pattern, _ = csc_pattern(spd)
     n = pattern.n
     with pytest.raises(ValueError, match="blocks"):
-        sparse.Pattern(pattern.rows, pattern.cols, n, blocks=sparse.NodeBlocks(2, np.arange(n // 2 + 1), np.arange(n // 2)))
+        diagonal_blocks = sparse.NodeBlocks(2, np.arange(n // 2 + 1), np.arange(n // 2))
+        sparse.Pattern(pattern.rows, pattern.cols, n, blocks=diagonal_blocks)
     blocks = sparse.NodeBlocks(2, np.array([0, 2, 4]), np.array([0, 1, 0, 1]))  # one full 4 x 4
     p = sparse.Pattern(np.tile(np.arange(4), 4), np.repeat(np.arange(4), 4), 4, blocks=blocks)
     p.factorize(torch.as_tensor((4 * np.eye(4) + 1).reshape(-1)))
