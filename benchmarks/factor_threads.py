@@ -1,10 +1,10 @@
 """CHOLMOD numeric factorisation with one OpenBLAS thread against all cores, by system size.
 
 The LPS stiffness of experiments/demo.py's plate at several spacings (delta = 3 h), free dofs
-only; each size factorised with ``bayespd.linalg.sparse.FACTOR_THREADS`` = 1 and = None (OpenBLAS's
+only; each size factorised with ``linalg.settings(factor_threads=...)`` 1 and None (OpenBLAS's
 setting: all cores unless OPENBLAS_NUM_THREADS lowers it), interleaved, best of ``--repeat``
 each, after the symbolic analysis. Prints dofs, factor entries, both times and their ratio:
-the table behind the default FACTOR_THREADS = None.
+the table behind the default factor_threads = None.
 
     python benchmarks/factor_threads.py [--h 2 1 0.5 0.4 0.25] [--repeat 7]
 """
@@ -19,6 +19,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
 import demo  # noqa: E402  (one torch thread; the repository root on sys.path)
 
+from bayespd import linalg  # noqa: E402
 from bayespd.linalg import sparse  # noqa: E402
 from timing import best  # noqa: E402
 
@@ -31,11 +32,8 @@ def free_system(h: float):
 
 
 def timed(pattern, values, threads, repeat):
-    before, sparse.FACTOR_THREADS = sparse.FACTOR_THREADS, threads
-    try:
+    with linalg.settings(factor_threads=threads):
         return best(lambda: pattern.factorize(values, "cholmod"), repeat)
-    finally:
-        sparse.FACTOR_THREADS = before
 
 
 def main(hs, repeat):

@@ -38,11 +38,11 @@ def run_one(n: int, m: float, material: str, solver: str, threads: int, scene: b
     import torch
 
     import bayespd as bp
-    from bayespd.linalg import sparse
+    from bayespd import linalg
     from bayespd.linalg.stiffness_solver import Assembly
 
     torch.set_num_threads(threads)
-    sparse.FACTOR_THREADS = threads
+    linalg.set_defaults(factor_threads=threads)
     side = int(round(np.sqrt(n)))
     h = 1.0
     out = {"particles": side * side, "m": m, "material": material, "solver": solver,

@@ -22,7 +22,7 @@ from pyro import poutine
 from common import run_dir, write_metrics
 from bayespd.scenes.tikhonov_square import DELTA, MU0, graded_moduli, noisy_fine_data, square_scene
 
-import bayespd.linalg.sparse
+from bayespd import linalg
 from bayespd.infer import fit
 from bayespd.inverse.psi_choice import discrepancy
 from bayespd.inverse.tikhonov import tikhonov
@@ -31,7 +31,7 @@ from bayespd.models.heterogeneous_field import heterogeneous_field, tikhonov_set
 HYPER = {"amplitude": 0.1, "length": 250.0}
 TARGETS = {"gmrf_mean_rel_error": 0.05, "gmrf_max_rel_error": 0.15, "gmrf_coverage_90": 0.8,
            "map_equals_tikhonov_max_abs_log": 1e-6}
-bayespd.linalg.sparse.FACTOR_THREADS = 1
+linalg.set_defaults(factor_threads=1)
 
 
 def errors(field, truth):

@@ -29,7 +29,7 @@ import torch
 from common import run_dir, write_metrics
 
 import bayespd as bp
-import bayespd.linalg.sparse
+from bayespd import linalg
 from bayespd.damage import CriticalStretch
 from bayespd.inverse.tikhonov import tikhonov
 from bayespd.solvers.quasistatic import LoadedBody, quasi_static
@@ -47,7 +47,7 @@ RAMP, ELASTIC_LIMIT = 6, 100.0  # load steps from ELASTIC_LIMIT to each F_y abov
 START = 50.0  # initial guess of F_y (N)
 TARGET = 0.01
 FACE_X = np.arange(0.05, A, 0.1)  # aperture stations along the initial crack
-bayespd.linalg.sparse.FACTOR_THREADS = 1  # measured: threaded CHOLMOD crawls on a shared 2-core machine
+linalg.set_defaults(factor_threads=1)  # measured: threaded CHOLMOD crawls on a shared 2-core machine
 
 
 def plate(h: float, crack_tip: float = A):

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 import bayespd as bp
-import bayespd.linalg.sparse
+from bayespd import linalg
 from bayespd.infer import fit
 from bayespd.models.load_from_aperture import aperture_observation, load_from_aperture
 
@@ -36,9 +36,8 @@ def plate(h):
 @pytest.fixture(scope="module", autouse=True)
 def one_factor_thread():
     """Threaded CHOLMOD crawls on a shared 2-core machine (see experiments/tikhonov_aperture.py)."""
-    before, bayespd.linalg.sparse.FACTOR_THREADS = bayespd.linalg.sparse.FACTOR_THREADS, 1
-    yield
-    bayespd.linalg.sparse.FACTOR_THREADS = before
+    with linalg.settings(factor_threads=1):
+        yield
 
 
 @pytest.fixture(scope="module")

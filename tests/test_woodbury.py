@@ -222,47 +222,6 @@ needs_cholmod = pytest.mark.skipif(not trailing.available(), reason="the trailin
 
 
 @needs_cholmod
-def test_trailing_factor_half_solves_and_inverse(plate):
-    """Rows last (``TrailingFactor``): forward then backward half solves equal the direct
-    solve to 1e-12, and L_S^-1 is the inverse of the factor's trailing block (its columns are
-    L^-1 e_r for rows r of the region, checked against the forward solve of e_r)."""
-    active = plate.active(torch.ones(plate.n_bonds))
-    M = sp.diags(np.full(len(active), 2.0)) + 1e-3 * plate.operator(torch.ones(plate.n_bonds), active)
-    region = np.flatnonzero(np.abs(plate.particles.x[active // 2, 1] - SIDE / 2) < 1.5)
-    f = trailing.TrailingFactor(M, region)
-    rhs = np.random.default_rng(1).standard_normal((len(active), 2))
-    exact = sla.solve(M.toarray(), rhs)
-    assert np.abs(f.solve(rhs) - exact).max() <= 1e-12 * np.abs(exact).max()
-    r = region[[0, 7]]
-    E = np.zeros((len(active), 2))
-    E[r, [0, 1]] = 1.0
-    z = f.forward(E)
-    assert np.abs(z[: f.n_first]).max() == 0.0
-    assert np.abs(z[f.n_first:] - f.trailing_inverse[:, f.position[r]]).max() <= 1e-12 * np.abs(z).max()
-    with pytest.raises(ValueError, match="non-empty"):
-        trailing.TrailingFactor(M, [])
-    with pytest.raises(NotPositiveDefiniteError, match="not positive definite"):
-        trailing.TrailingFactor(M - 3.0 * sp.eye(M.shape[0]), region)
-
-
-@needs_cholmod
-def test_shared_trailing_factor_is_one_per_operator(plate):
-    """``trailing.shared`` hands the same read-only factor to every caller whose operator and
-    rows are equal bit for bit, and a new one when either changes in any entry."""
-    active = plate.active(torch.ones(plate.n_bonds))
-    M = (sp.diags(np.full(len(active), 2.0)) + 1e-3 * plate.operator(torch.ones(plate.n_bonds), active)).tocsr()
-    region = np.flatnonzero(np.abs(plate.particles.x[active // 2, 1] - SIDE / 2) < 1.5)
-    f = trailing.shared(M, region)
-    assert trailing.shared(M.copy(), region.copy()) is f
-    nudged = M.copy()
-    nudged.data[0] *= 1 + 1e-15
-    assert trailing.shared(nudged, region) is not f
-    assert trailing.shared(M, region[1:]) is not f
-    with pytest.raises(ValueError, match="read-only"):
-        f.trailing_inverse[0, 0] = 0.0
-
-
-@needs_cholmod
 def test_region_update_equals_a_fresh_factor(plate):
     """Woodbury on a region ordered last: two successive changes inside it solve like a fresh
     factorisation to 1e-10 (one and several right-hand sides) and like the column-solving

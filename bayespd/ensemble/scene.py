@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from threadpoolctl import threadpool_limits
 
-from bayespd.linalg import sparse
+from bayespd import linalg
 from bayespd.damage import crack_length
 from bayespd.ensemble.heap import keep_temporaries_on_heap
 from bayespd.solvers.fracture import check_tangent
@@ -114,9 +114,8 @@ def realise_batch(scene: FractureScene, items: list, device=None) -> list:
     if not items:
         return []
     keep_temporaries_on_heap()
-    threads, factor_threads = torch.get_num_threads(), sparse.FACTOR_THREADS
+    threads = torch.get_num_threads()
     torch.set_num_threads(1)
-    sparse.FACTOR_THREADS = 1  # CHOLMOD's BLAS: its sums depend on the thread count
     start, cpu = time.perf_counter(), time.process_time()
 
     def job(params, seed):
@@ -129,11 +128,11 @@ def realise_batch(scene: FractureScene, items: list, device=None) -> list:
         return run
 
     try:
-        with threadpool_limits(1):
+        # one thread for CHOLMOD's BLAS too: its sums depend on the thread count
+        with threadpool_limits(1), linalg.settings(factor_threads=1):
             runs = LockStep(BATCH).run([job(params, seed) for params, seed in items])
     finally:
         torch.set_num_threads(threads)
-        sparse.FACTOR_THREADS = factor_threads
         gc.collect()  # factors held in closures are cyclic garbage: free them before the next run
     share = {"wall_time_s": (time.perf_counter() - start) / len(items),
              "cpu_time_s": (time.process_time() - cpu) / len(items)}  # this process's CPU: load-independent

@@ -6,13 +6,13 @@ Every linearised PD stiffness has this form: A is a sparse operator of fixed str
 ``Gram.values`` assembles the same numbers with torch ops on entry pairs (differentiable,
 more memory); ``Gram.apply`` is the matrix-free product A x.
 
-Speed (benchmarks/README.md): PD operators act on whole particles, so an operator's entries
-come in blocks of ``d`` dofs (the ``d`` components of one particle's displacement). When every
-Gram has this block structure, the pattern is built at particle level (d^2 = 4x fewer index
-pairs in 2D) and the numeric product is one scipy BSR product of all terms stacked,
-``[A_1; A_2]^T diag(w_1, w_2) [A_1; A_2]``, whose blocks are scattered into the pattern by an
-index map cached on the pattern (no searchsorted per call). BSR products keep zero blocks,
-so the product's structure does not depend on the values and the map stays valid.
+Node blocks: an operator's entries often come in blocks of ``b`` dofs (the ``b`` components
+of one node's displacement). When every Gram has this block structure, the pattern is built
+at node level (b^2 fewer index pairs) and the numeric product is one scipy BSR product of all
+terms stacked, ``[A_1; A_2]^T diag(w_1, w_2) [A_1; A_2]``, whose blocks are scattered into the
+pattern by an index map kept in the pattern's ``NodeBlocks.maps`` (no search per call). BSR
+products keep zero blocks, so the product's structure does not depend on the values and the
+map stays valid.
 """
 from __future__ import annotations
 
@@ -22,14 +22,14 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from bayespd.linalg.sparse import Pattern
+from bayespd.linalg.sparse import NodeBlocks, Pattern
 
-_CHUNK = 1 << 22  # index entries handled at once when expanding particle blocks to dofs
+_CHUNK = 1 << 22  # index entries handled at once when expanding node blocks to dofs
 
 
 def _group_ids(counts: np.ndarray) -> np.ndarray:
-    """np.repeat(np.arange(len(counts)), counts), by a cumulative sum (np.repeat with an
-    array of counts is several times slower on tens of millions of entries)."""
+    """np.repeat(np.arange(len(counts)), counts), by a cumulative sum (faster than np.repeat
+    with an array of counts on large inputs)."""
     counts = np.asarray(counts, dtype=np.int64)
     out = np.zeros(int(counts.sum()), dtype=np.int64)
     ends = np.cumsum(counts)[:-1]
@@ -59,11 +59,12 @@ class Gram:
         np.cumsum(np.bincount(self.rows, minlength=n_rows), out=self.indptr[1:])
         self._rows_t, self._cols_t = torch.as_tensor(self.rows), torch.as_tensor(self.cols)
         self._order_t = torch.as_tensor(self.order)
+        self._targets = None  # (pattern, positions in it) of the latest ``values``
         self.block = self._block_size()
 
     def _block_size(self) -> int:
         """b such that the entries come in runs (r, b q), ..., (r, b q + b - 1): then A is a
-        BSR matrix of 1 x b blocks (one particle's dofs); 1 when there is no such b."""
+        BSR matrix of 1 x b blocks (one node's dofs); 1 when there is no such b."""
         n = len(self.cols)
         for b in (2, 3):
             if n == 0 or n % b or self.shape[1] % b:
@@ -76,7 +77,8 @@ class Gram:
                 return b
         return 1
 
-    def _ordered(self, data) -> np.ndarray:
+    def ordered(self, data) -> np.ndarray:
+        """Entries given in the order of construction, in A's row-major order."""
         data = np.asarray(data)
         return data if self._identity else data[self.order]
 
@@ -87,7 +89,7 @@ class Gram:
 
     def operator(self, data) -> sp.csr_matrix:
         cols, indptr = self._csr_index
-        return sp.csr_matrix((self._ordered(data), cols, indptr), shape=self.shape, copy=False)
+        return sp.csr_matrix((self.ordered(data), cols, indptr), shape=self.shape, copy=False)
 
     def matrix(self, data, w) -> sp.csr_matrix:
         """A^T diag(w) A numerically (data: entries of A in the order given at construction)."""
@@ -123,22 +125,22 @@ class Gram:
     def values(self, data: torch.Tensor, w: torch.Tensor, pattern: Pattern) -> torch.Tensor:
         """A^T diag(w) A on ``pattern`` as a differentiable torch expression."""
         k1, k2 = self._pairs
-        if not hasattr(self, "_targets") or self._targets[0] is not pattern:
+        if self._targets is None or self._targets[0] is not pattern:
             self._targets = (pattern, torch.as_tensor(pattern.position(self.cols[k1], self.cols[k2])))
         d = data if self._identity else data[self._order_t]
         contrib = w[torch.as_tensor(self.rows[k1])] * d[torch.as_tensor(k1)] * d[torch.as_tensor(k2)]
         return torch.zeros(pattern.nnz, dtype=contrib.dtype).index_add(0, self._targets[1], contrib)
 
-    # --- particle-block (BSR) form, used when self.block > 1 ---------------------------------
+    # --- node-block (BSR) form, used when self.block > 1 -------------------------------------
 
-    def _block_parts(self):
+    def block_parts(self):
         """(indices, indptr) of A as a BSR matrix of 1 x b blocks (b = self.block)."""
         b = self.block
         return self.cols[::b] // b, self.indptr // b
 
     def _block_data(self, data, w=None) -> np.ndarray:
         """diag(w) A's entries in row-major order, as (nnz / b, 1, b) blocks."""
-        d = self._ordered(np.asarray(data, dtype=np.float64))
+        d = self.ordered(np.asarray(data, dtype=np.float64))
         if w is not None:
             d = d * np.repeat(np.asarray(w, dtype=np.float64), np.diff(self.indptr))
         return d.reshape(-1, 1, self.block)
@@ -146,7 +148,7 @@ class Gram:
 
 class _Stack:
     """The Gram operators of a list of terms stacked row-wise, plus b identity rows per
-    particle (weight 0 numerically) so that every diagonal block is in the product."""
+    node (weight 0 numerically) so that every diagonal block is in the product."""
 
     def __init__(self, grams: list[Gram]):
         b = grams[0].block
@@ -154,7 +156,7 @@ class _Stack:
         self.nodes = grams[0].shape[1] // b
         indices, ptrs, offset = [], [], 0
         for g in self.grams:
-            ind, ptr = g._block_parts()
+            ind, ptr = g.block_parts()
             indices.append(ind)
             ptrs.append(ptr[:-1] + offset)
             offset += len(ind)
@@ -178,8 +180,8 @@ class _Stack:
 
 
 def _expand_blocks(node_indptr, node_indices, b):
-    """Dof-level CSC pattern (rows, cols) of a symmetric particle-level pattern whose every
-    entry stands for a full b x b block: column b J + a' holds rows b I + a for the particles
+    """Dof-level CSC pattern (rows, cols) of a symmetric node-level pattern whose every
+    entry stands for a full b x b block: column b J + a' holds rows b I + a for the nodes
     I of column J (sorted) and a = 0..b-1, the same rows for every a'."""
     n = len(node_indptr) - 1
     counts = np.diff(node_indptr)
@@ -192,7 +194,7 @@ def _expand_blocks(node_indptr, node_indices, b):
     for J0 in range(0, n, step):
         J1 = min(n, J0 + step)
         seg = (b * node_indices[node_indptr[J0]:node_indptr[J1]][:, None] + a).reshape(-1)
-        # each dof column (J, a') repeats particle column J's rows: gather its segment b times
+        # each dof column (J, a') repeats node column J's rows: gather its segment b times
         k0, k1 = b * J0, b * J1
         start = np.repeat(b * (node_indptr[J0:J1] - node_indptr[J0]), b)  # segment start per column
         src = np.arange(col_ptr[k1] - col_ptr[k0])
@@ -214,11 +216,10 @@ def union_pattern(grams: list[Gram]) -> Pattern:
         S.sort_indices()
         node_ptr, node_ind = S.indptr.astype(np.int64), S.indices.astype(np.int64)
         rows, cols = _expand_blocks(node_ptr, node_ind, b)
-        pattern = Pattern(rows, cols, n)
-        pattern._blocks = (b, node_ptr, node_ind)
+        pattern = Pattern(rows, cols, n, blocks=NodeBlocks(b, node_ptr, node_ind))
         smap = _StackMap(stack, pattern)
         smap.set_structure(K, sorted_position=_inverse(S.data.astype(np.int64)))
-        pattern._stacks = {tuple(map(id, grams)): smap}
+        pattern.blocks.maps[tuple(map(id, grams))] = smap
         return pattern
     S = sum(g.structure() for g in grams) + sp.identity(n, format="csr")
     S = S.tocsc()
@@ -246,9 +247,10 @@ class _StackMap:
         """Record K's block structure and the pattern position of each entry of K.data
         (flattened (block, a', a) order). Block q in BSR row J and column I holds
         K[b J + a', b I + a], which by symmetry is the pattern entry at row b I + a of column
-        b J + a'. ``sorted_position``: each block's index in the pattern's particle structure
+        b J + a'. ``sorted_position``: each block's index in the pattern's node structure
         when known (the full stack); else found by binary search."""
-        b, node_ptr, node_ind = self.pattern._blocks
+        blocks = self.pattern.blocks
+        b, node_ptr, node_ind = blocks.size, blocks.indptr, blocks.indices
         n = len(node_ptr) - 1
         counts = np.diff(node_ptr)
         J = _group_ids(np.diff(K.indptr))
@@ -265,7 +267,7 @@ class _StackMap:
         base *= b
         base += b * b * start
         del start
-        stride = b * counts[J]  # entries in each dof column of particle column J
+        stride = b * counts[J]  # entries in each dof column of node column J
         dest = np.empty((len(J), b, b), dtype=np.int64)
         for a1 in range(b):
             for a in range(b):
@@ -295,13 +297,12 @@ def numeric_values(pattern: Pattern, terms) -> torch.Tensor:
     """sum_t A_t^T diag(w_t) A_t on ``pattern`` from (gram, data, w) triples, via scipy."""
     terms = [(g, to_numpy(d), to_numpy(w)) for g, d, w in terms]
     grams = [g for g, _, _ in terms]
-    blocks = getattr(pattern, "_blocks", None)
-    if blocks is not None and all(g.block == blocks[0] for g in grams):
+    blocks = pattern.blocks
+    if blocks is not None and all(g.block == blocks.size for g in grams):
         key = tuple(map(id, grams))
-        stacks = pattern._stacks
-        if key not in stacks:
-            stacks[key] = _StackMap(_Stack(grams), pattern)
-        m = stacks[key]
+        if key not in blocks.maps:
+            blocks.maps[key] = _StackMap(_Stack(grams), pattern)
+        m = blocks.maps[key]
         if all(a is b for a, b in zip(m.stack.grams, grams)):
             return torch.as_tensor(m.values([d for _, d, _ in terms], [w for _, _, w in terms]))
     K = sum(g.matrix(d, w) for g, d, w in terms)

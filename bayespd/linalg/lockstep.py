@@ -1,14 +1,13 @@
 """Runs in lock-step: several jobs in one process share the half solves of one factor.
 
-The realisations of a fracture ensemble start from one step operator per process
-(``bayespd.scenes.notched_plate``, ``trailing.shared``), and each step of each does one forward and one
-backward half solve with its factor. A block of W columns costs little more than one column
-(CHOLMOD, 18.8k dofs: 8 columns 16.8 ms, one 7.4 ms), so ``LockStep(W).run(jobs)`` runs the
-jobs as cooperative threads, one at a time: a job runs until its next half solve of one vector
-(``TrailingFactor.forward`` / ``backward``, which ask ``current()``) and waits; when every
-live job waits, the solves are done W columns to a call (zeros fill a block) and the jobs
-resume in turn. As only one job runs at any time, they may share bodies and caches, and
-nothing contends for the interpreter.
+The runs of an ensemble (e.g. the realisations of a fracture ensemble) may start from one
+factor per process (``trailing.shared``), each step of each doing one forward and one
+backward half solve with it. A block of W columns costs little more than one column, so
+``LockStep(W).run(jobs)`` runs the jobs as cooperative threads, one at a time: a job runs
+until its next half solve of one vector (``TrailingFactor.forward`` / ``backward``, which
+ask ``current()``) and waits; when every live job waits, the solves are done W columns to a
+call (zeros fill a block) and the jobs resume in turn. As only one job runs at any time,
+they may share bodies and caches, and nothing contends for the interpreter.
 
 Bit for bit: a column's result does not depend on the other columns of its block or on its
 place there, but it does depend on the block's width (BLAS-3 kernels add in another order

@@ -18,9 +18,9 @@ interface, for problems too large to factorise (see ``bayespd.linalg.stiffness_s
 ``ConvergenceError`` when it does not reach its tolerance.
 
 Threads: CHOLMOD's supernodal factorisation runs in OpenBLAS; ``blas_threads(n)`` sets how
-many threads that OpenBLAS uses (``FACTOR_THREADS`` while factorising). Triangular solves and
-the PCG loop run with one thread: a second OpenBLAS thread spinning between calls only slows
-the single-threaded scipy code in between on a 2-core machine.
+many threads that OpenBLAS uses (``config.LinalgSettings.factor_threads`` while factorising).
+Triangular solves and the PCG loop run with one thread: a second OpenBLAS thread spinning
+between calls only slows the single-threaded scipy code in between.
 """
 from __future__ import annotations
 
@@ -35,6 +35,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 
+from bayespd.linalg.config import current_settings
+
 try:  # optional extra `fast`
     from sksparse import cholmod
 except ImportError:  # pragma: no cover - depends on the machine
@@ -47,14 +49,6 @@ class NotPositiveDefiniteError(RuntimeError):
 
 class ConvergenceError(RuntimeError):
     """An iterative solve did not reach its tolerance."""
-
-
-# CHOLMOD settings: fill-reducing ordering ("default" tries AMD and METIS and keeps the better;
-# "amd" analyses much faster on large 2D problems but fills more; "metis", "nesdis", "best")
-# and OpenBLAS threads while factorising (None: OpenBLAS's own setting, i.e. all cores unless
-# OPENBLAS_NUM_THREADS or threadpoolctl lowered it, as each MCMC chain worker does).
-CHOLMOD_ORDERING = "default"
-FACTOR_THREADS: int | None = None
 
 
 def _load_openblas():
@@ -74,9 +68,8 @@ _OPENBLAS = _load_openblas() if cholmod is not None else None
 @contextlib.contextmanager
 def blas_threads(n: int | None):
     """Run the block with ``n`` OpenBLAS threads (CHOLMOD's BLAS); None leaves the current
-    setting, so a process limited by ``threadpoolctl`` (two chain workers on two cores) keeps
-    its limit: taking every core in each worker oversubscribed them (NUTS on the demo 1.34x
-    slower, benchmarks/README.md)."""
+    setting, so a process limited by ``threadpoolctl`` (chain workers sharing the cores) keeps
+    its limit rather than oversubscribing the cores."""
     if _OPENBLAS is None or n is None:
         yield
         return
@@ -88,22 +81,47 @@ def blas_threads(n: int | None):
         _OPENBLAS.openblas_set_num_threads(before)
 
 
+@dataclass(frozen=True, eq=False)
+class NodeBlocks:
+    """The structure of a symmetric pattern made of full ``size`` x ``size`` blocks (the
+    dofs of one node each): node column J holds the nodes ``indices[indptr[J]:indptr[J + 1]]``
+    (sorted), and every dof entry of those blocks is in the pattern. ``maps`` is the
+    assemblers' cache of where their products land in the pattern
+    (``assembly.numeric_values``), kept with the pattern it is valid for."""
+
+    size: int
+    indptr: np.ndarray
+    indices: np.ndarray
+    maps: dict = field(default_factory=dict, repr=False)
+
+
 @dataclass(eq=False)
 class Pattern:
     """A fixed sparsity pattern of an n x n matrix, entries in CSC order (column-major).
 
-    ``rows``/``cols`` are int64 arrays; symmetric patterns list both triangles.
+    ``rows``/``cols`` are int64 arrays; symmetric patterns list both triangles; ``blocks``:
+    its ``NodeBlocks`` when it is made of node blocks (``assembly.union_pattern``), else None.
+    ``indptr`` (CSC column pointers) and ``rows_t``/``cols_t`` (torch copies) are derived.
     """
 
     rows: np.ndarray
     cols: np.ndarray
     n: int
-    _symbolic: object = field(default=None, repr=False)
+    blocks: NodeBlocks | None = field(default=None, repr=False)
+    indptr: np.ndarray = field(init=False, repr=False)
+    rows_t: torch.Tensor = field(init=False, repr=False)
+    cols_t: torch.Tensor = field(init=False, repr=False)
+    _strict: bool = field(init=False, repr=False)  # no duplicate entries
+    _symbolic: object = field(default=None, init=False, repr=False)  # CHOLMOD's analysis
 
     def __post_init__(self):
         self.rows = np.asarray(self.rows, dtype=np.int64)
         self.cols = np.asarray(self.cols, dtype=np.int64)
-        self._strict = True  # no duplicate entries
+        b = self.blocks
+        if b is not None and (b.size * (len(b.indptr) - 1) != self.n
+                              or b.size ** 2 * len(b.indices) != self.nnz):
+            raise ValueError("blocks must describe this pattern's node blocks")
+        self._strict = True
         step = 1 << 20  # O(nnz) check in chunks (no sort, no large temporaries)
         for k in range(0, max(0, len(self.rows) - 1), step):
             dc = np.diff(self.cols[k:k + step + 1])
@@ -166,7 +184,7 @@ class Pattern:
     def factorize(self, values: torch.Tensor, backend: str | None = None,
                   ordering: str | None = None) -> "Factor":
         """A factor of the matrix with these values (``ordering``: CHOLMOD's fill-reducing
-        ordering for the first factorisation of this pattern, default CHOLMOD_ORDERING)."""
+        ordering for the first factorisation of this pattern, by default the settings')."""
         backend = backend or default_backend()
         A = self.matrix(values)
         if not np.all(np.isfinite(A.data)):
@@ -174,7 +192,7 @@ class Pattern:
         if backend == "cholmod":
             if cholmod is None:
                 raise ValueError("backend 'cholmod' needs scikit-sparse: install the 'fast' extra")
-            return _cholmod_factor(self, A, ordering or CHOLMOD_ORDERING)
+            return _cholmod_factor(self, A, ordering or current_settings().cholmod_ordering)
         if backend == "splu":
             return _splu_factor(A)
         raise ValueError(f"unknown backend {backend!r}: use 'cholmod' or 'splu'")
@@ -185,29 +203,28 @@ def default_backend() -> str:
 
 
 class Factor:
-    """A factorisation with ``solve(b)`` for numpy b of shape (n,) or (n, k)."""
+    """A factorisation with ``solve(b)`` for numpy b of shape (n,) or (n, k); ``cholmod``:
+    CHOLMOD's factor object when CHOLMOD made it (its L, P, ...), else None."""
 
-    def __init__(self, solve_fn):
-        self.solve = solve_fn
+    def __init__(self, solve_fn, cholmod=None):
+        self.solve, self.cholmod = solve_fn, cholmod
 
 
-def _cholmod_factor(pattern: Pattern, A, ordering: str = "default") -> Factor:
+def _cholmod_factor(pattern: Pattern, A, ordering: str) -> Factor:
     try:
-        with blas_threads(FACTOR_THREADS):
+        with blas_threads(current_settings().factor_threads):
             if pattern._symbolic is None:
                 pattern._symbolic = cholmod.analyze(A, mode="supernodal", ordering_method=ordering)
             f = pattern._symbolic.cholesky(A)
     except cholmod.CholmodNotPositiveDefiniteError as e:
         raise NotPositiveDefiniteError(f"stiffness is not positive definite ({e})") from None
-    _check_pivots(f.D(), A.diagonal()[f.P()])
+    check_pivots(f.D(), A.diagonal()[f.P()])
 
     def solve(b):
         with blas_threads(1):
             return f.solve_A(b)
 
-    factor = Factor(solve)
-    factor.cholmod = f
-    return factor
+    return Factor(solve, cholmod=f)
 
 
 def _dot(a: np.ndarray, b: np.ndarray):
@@ -287,7 +304,7 @@ def _splu_factor(A) -> Factor:
     if not np.array_equal(lu.perm_r, lu.perm_c):
         raise NotPositiveDefiniteError("stiffness is not positive definite (a row swap was "
                                        "needed): check moduli, horizon and constraints")
-    _check_pivots(lu.U.diagonal(), A.diagonal()[np.argsort(lu.perm_c)])
+    check_pivots(lu.U.diagonal(), A.diagonal()[np.argsort(lu.perm_c)])
     return Factor(lu.solve)
 
 
@@ -297,7 +314,9 @@ def _splu_factor(A) -> Factor:
 PIVOT_RTOL = 1e-10
 
 
-def _check_pivots(pivots: np.ndarray, diagonal: np.ndarray) -> None:
+def check_pivots(pivots: np.ndarray, diagonal: np.ndarray) -> None:
+    """Raise NotPositiveDefiniteError unless every pivot of a factorisation is positive and
+    not zero in floating point relative to its diagonal entry (``PIVOT_RTOL``)."""
     if not (np.all(diagonal > 0) and np.all(pivots > PIVOT_RTOL * diagonal)):
         raise NotPositiveDefiniteError("stiffness is not positive definite (a zero or negative "
                                        "pivot): check moduli, horizon and constraints (are "

@@ -13,6 +13,7 @@ import scipy.sparse as sp
 import torch
 
 from bayespd.linalg.assembly import Gram, numeric_values, to_numpy, union_pattern
+from bayespd.linalg.config import current_settings
 from bayespd.linalg.sparse import (NotPositiveDefiniteError, Pattern, PCGFactor, blas_threads, cholmod,
                             default_backend)
 
@@ -44,7 +45,6 @@ class Assembly:
             raise ValueError(f"free must be a boolean mask of the {self.n} dofs")
         self.free_index = np.flatnonzero(self.free)
         self._given_pattern = pattern
-        self._laplacian = {}
 
     @cached_property
     def pattern(self) -> Pattern:
@@ -82,10 +82,11 @@ class Assembly:
 
         The operators are stacked into one CSR matrix C (rows: bonds, then particles, ...)
         with weights W, K = C^T W C, split into ``threads`` row blocks of equal size that are
-        applied in parallel (scipy's sparse products release the GIL)."""
+        applied in parallel (scipy's sparse products release the GIL; default: the settings'
+        ``matvec_threads``, None there meaning all cores)."""
         C = sp.vstack([g.operator(to_numpy(d)) for g, d, _ in terms], format="csr")
         W = np.concatenate([np.asarray(to_numpy(w), dtype=np.float64) for _, _, w in terms])
-        threads = max(1, int(threads or MATVEC_THREADS or os.cpu_count() or 1))
+        threads = max(1, int(threads or current_settings().matvec_threads or os.cpu_count() or 1))
         cuts = np.searchsorted(C.indptr, np.linspace(0, C.nnz, threads + 1)[1:-1])
         bounds = [0, *cuts.tolist(), C.shape[0]]
         parts = [(C[a:b], W[a:b]) for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
@@ -118,13 +119,13 @@ class Assembly:
         nodes = self.n // b
         pi, pj, pw = [], [], []
         for g, d, w in terms:
-            ind, ptr = g._block_parts()
+            ind, ptr = g.block_parts()
             two = np.flatnonzero(np.diff(ptr) == 2)
             if rows is not None and g in rows:
                 two = two[np.asarray(rows[g], dtype=bool)[two]]
             if len(two) == 0:
                 continue
-            blocks = g._ordered(np.asarray(d, dtype=np.float64)).reshape(-1, b)
+            blocks = g.ordered(np.asarray(d, dtype=np.float64)).reshape(-1, b)
             strength = 0.5 * (blocks[ptr[two]] ** 2 + blocks[ptr[two] + 1] ** 2).sum(axis=1) / b
             weight = np.maximum(np.asarray(w, dtype=np.float64)[two], 0.0) * strength
             pi.append(ind[ptr[two]]), pj.append(ind[ptr[two] + 1]), pw.append(weight)
@@ -157,7 +158,6 @@ class Assembly:
         return precondition
 
 
-MATVEC_THREADS: int | None = 1  # threads of the matrix-free product (None: all cores)
 _POOLS: dict = {}
 
 

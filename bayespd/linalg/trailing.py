@@ -9,9 +9,8 @@ so the forward solve z = L^-1 r ends in the trailing block, and for any E whose 
 unit vectors on B, L^-1 E = [0; L_S^-1 E_B] is a set of columns of one dense triangular
 inverse, made once per factor (LAPACK trtri, |B|^3 / 3 flops). A Woodbury update on B then
 needs no sparse solve per changed row (``woodbury.LocallyUpdated(region=...)``). A band that
-separates the body (a ligament ahead of a notch) is the top separator nested dissection would
-choose anyway: the 10k-particle plate's factor has 5.51 M entries with a 1,728-dof band of its
-ligament last, against METIS's 5.41 M, and the same solve time (4.4 ms).
+separates the domain is the top separator nested dissection would choose anyway, so ordering
+it last costs little fill.
 
 CHOLMOD only: its half solves are what make this work (SuperLU has none).
 """
@@ -23,8 +22,8 @@ import numpy as np
 import scipy.linalg.lapack as lapack
 import scipy.sparse as sp
 
-from bayespd.linalg import sparse
-from bayespd.linalg import lockstep
+from bayespd.linalg import lockstep, sparse
+from bayespd.linalg.config import current_settings
 
 
 _ORDERINGS: dict = {}  # pattern digest -> METIS permutation (the latest four; METIS is deterministic)
@@ -48,17 +47,17 @@ def _kept(cache: dict, size: int, key: str, make):
 
 
 def _metis_order(A: sp.csc_matrix) -> np.ndarray:
-    """CHOLMOD's METIS permutation of A, kept per sparsity pattern: every realisation of a
-    fracture ensemble starts from the same intact pattern (0.2 s of analysis each at 18.8k dofs)."""
+    """CHOLMOD's METIS permutation of A, kept per sparsity pattern: many runs in a process
+    (the realisations of an ensemble) start from the same pattern."""
     return _kept(_ORDERINGS, 4, _digest(np.asarray(A.shape), A.indptr, A.indices),
                  lambda: sparse.cholmod.analyze(A, mode="supernodal", ordering_method="metis").P())
 
 
 def shared(M, last: np.ndarray) -> "TrailingFactor":
     """``TrailingFactor(M, last)``, kept for the latest two (M, last) of the process and
-    shared by every caller with the same values bit for bit: the realisations of a fracture
-    ensemble whose step operator does not depend on their parameters start from one factor
-    (0.4 s each at 18.8k dofs). The factor is read-only."""
+    shared by every caller with the same values bit for bit (the runs of an ensemble whose
+    operator does not depend on their parameters start from one factor). The factor is
+    read-only."""
     M = sp.csc_matrix(M, dtype=np.float64)
     last = np.asarray(last, dtype=np.int64)
     return _kept(_FACTORS, 2, _digest(np.asarray(M.shape), M.indptr, M.indices, M.data, last),
@@ -87,7 +86,7 @@ class TrailingFactor:
         first = np.setdiff1d(np.arange(n), last)
         cholmod = sparse.cholmod
         try:
-            with sparse.blas_threads(sparse.FACTOR_THREADS):
+            with sparse.blas_threads(current_settings().factor_threads):
                 if len(first):
                     first = first[_metis_order(M[first][:, first].tocsc())]
                 self.perm = np.concatenate([first, last])
@@ -95,7 +94,7 @@ class TrailingFactor:
                 self._f = cholmod.analyze(Mp, mode="supernodal", ordering_method="natural").cholesky(Mp)
         except cholmod.CholmodNotPositiveDefiniteError as e:
             raise sparse.NotPositiveDefiniteError(f"the operator is not positive definite ({e})") from None
-        sparse._check_pivots(self._f.D(), Mp.diagonal())
+        sparse.check_pivots(self._f.D(), Mp.diagonal())
         self.n, self.n_first = n, len(first)
         L_S = self._f.L()[self.n_first:, self.n_first:].toarray()
         with sparse.blas_threads(1):

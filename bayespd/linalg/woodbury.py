@@ -21,9 +21,8 @@ column of W is solved once per row that joins R and kept while R grows (bonds on
 so a run of many small changes costs one factorisation plus one solve per changed dof.
 With ``groups`` (a label per row, e.g. a spatial tile of the dofs) the columns of a row's
 whole group are solved in one batched solve when the first of them is needed: a crack
-touches the rows next to those it touched last, and a 32-column solve costs about 6
-single ones (CHOLMOD, 18.8k dofs; the 10k-particle fracture run's columns take 1.1 s
-instead of 2.3 s).
+touches the rows next to those it touched last, and a block solve costs far less than as
+many single ones.
 
 With ``region`` (the rows a change may touch, known in advance: a band where the crack can
 run) the factor orders them last (``trailing.TrailingFactor``, P M0 P^T = L L^T) and the
@@ -135,7 +134,7 @@ class LocallyUpdated:
             M0 = sp.diags(s) + b * self.A0
             self._bases.clear()  # the latest only, in the dict every operator changed from A0 shares
             if self.region is None:
-                # solved many times: METIS's smaller fill makes each solve ~25 % faster than AMD's
+                # solved many times: METIS's smaller fill makes each solve faster than AMD's
                 self._bases[key] = _Solved(spd_factor(M0, ordering="metis"), self.shape[0], self.max_rank, self.groups)
             else:
                 self._bases[key] = _Trailing(trailing.shared(M0, self.region), self.max_rank)
