@@ -4,8 +4,9 @@
 frozen dataclass whose fields are its settings and whose ``run(model, data, init, search)``
 returns ``Draws``. Built in: ``"nuts"`` / ``"hmc"`` (``NUTS``, ``HMC``), ``"svi"`` (``SVI``)
 and ``"laplace"`` (``Laplace``). To add one, subclass ``Method`` (its ``name``, its fields,
-its ``run``) and ``register`` it; ``fit(model, data, "<name>", ...)`` then runs it, with the
-checks, start, replay and DataTree every method gets::
+its ``run``) and ``register`` it; ``fit(model, data, "<name>", ...)`` then runs it (an object
+of it runs unregistered too: ``fit(model, data, Prior(...))``), with the checks, start, replay
+and DataTree every method gets::
 
     @dataclass(frozen=True)
     class Prior(Method):
