@@ -8,14 +8,12 @@ and early refusal of priors whose support leaves the physical range of a scene.
 from __future__ import annotations
 
 import math
-from types import SimpleNamespace
 
 import pyro.distributions as dist
 import torch
 
 from bayespd.bonds import check_horizon
-from bayespd.infer import ScaledBeta
-from bayespd.infer.checks import check_priors
+from bayespd.infer import ScaledBeta, check_priors
 
 
 def positive(name: str, value) -> float:
@@ -50,9 +48,8 @@ def choose(defaults: dict, priors: dict | None, scene=None) -> dict:
     for k, prior in priors.items():
         if not isinstance(prior, dist.Distribution):
             raise ValueError(f"the prior of {k} must be a Pyro distribution, got {type(prior).__name__}")
-    if scene is not None:  # the same check fit(..., scene=) runs on a trace
-        sites = {k: {"type": "sample", "is_observed": False, "fn": p} for k, p in priors.items()}
-        check_priors(SimpleNamespace(nodes=sites), scene)
+    if scene is not None:  # the check fit(..., scene=) runs on the model's priors
+        check_priors(priors, scene)
     return {**defaults, **priors}
 
 

@@ -1,10 +1,15 @@
 """Bayesian inference (Pyro): NUTS / HMC / SVI / Laplace fits stored as ArviZ-style ``xarray.DataTree``."""
 
+from .checks import check_priors
 from .datatree import load, modes, save, summary, to_inference_data
-from .fit import fit
-from .laplace import NotPositiveDefiniteHessian
+from .fit import METHODS, fit, register
+from .laplace import Laplace, NotPositiveDefiniteHessian
 from .mcmc import ChainDivergedError
+from .method import Draws, Method
 from .priors import ScaledBeta
+from .samplers import HMC, NUTS
+from .svi import SVI
 
-__all__ = ["fit", "to_inference_data", "save", "load", "summary", "modes", "ScaledBeta",
+__all__ = ["fit", "NUTS", "HMC", "SVI", "Laplace", "Method", "Draws", "METHODS", "register",
+           "to_inference_data", "save", "load", "summary", "modes", "ScaledBeta", "check_priors",
            "NotPositiveDefiniteHessian", "ChainDivergedError"]

@@ -57,14 +57,20 @@ def _bounds(support):
     return float(torch.as_tensor(low).min()), float(torch.as_tensor(high).max())
 
 
-def check_priors(trace, scene) -> None:
-    """Prior supports inside the physical range of ``scene``: moduli (``material.moduli_names``)
-    positive, the horizon in [h, delta_max]. Sites that are observed (fixed) are skipped."""
+def trace_priors(trace) -> dict:
+    """``{site: distribution}`` of the latent (unobserved) sample sites of ``trace``."""
+    return {k: s["fn"] for k, s in trace.nodes.items() if s["type"] == "sample" and not s["is_observed"]}
+
+
+def check_priors(priors: dict, scene) -> None:
+    """Prior supports (``{name: distribution}``) inside the physical range of ``scene``: moduli
+    (``material.moduli_names``) positive, the horizon in [h, delta_max]. Names that are no
+    parameter of the scene are skipped."""
     h, delta_max = scene.particles.h, scene.material.bonds.delta_max
-    for name, site in trace.nodes.items():
-        if site["type"] != "sample" or site["is_observed"] or name not in (*scene.param_names, "delta"):
+    for name, prior in priors.items():
+        if name not in (*scene.param_names, "delta"):
             continue
-        low, high = _bounds(site["fn"].support)
+        low, high = _bounds(prior.support)
         if name in scene.material.moduli_names and low < 0:
             raise ValueError(f"the prior of {name} has support [{low:g}, {high:g}], which "
                              f"includes negative moduli: use a positive prior, e.g. "

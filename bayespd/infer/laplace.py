@@ -28,6 +28,9 @@ from pyro import poutine
 from pyro.distributions import Independent, MaskedDistribution
 from pyro.distributions.torch_distribution import ExpandedDistribution
 from pyro.infer.autoguide.initialization import init_to_value
+
+from .method import Draws, Method
+from .mixture import allocate, mode_weights, one_chain
 from .mode import distinct_modes, modes_json
 from .space import Unconstrained
 
@@ -156,3 +159,41 @@ def stats(gaussian) -> dict:
         {"mode_unconstrained": ("unconstrained", gaussian.mean.numpy()),
          "covariance_unconstrained": (("unconstrained", "unconstrained_b"), cov)},
         coords={"unconstrained": labels, "unconstrained_b": labels})
+
+
+@dataclass(frozen=True)
+class Laplace(Method):
+    """The Laplace approximation at the MAP (the lowest of ``map_starts`` searches) with
+    ``hessian="exact" | "gauss-newton"``; ``num_samples`` draws of the Gaussian pushed through
+    the constraint transforms, as one chain. ``sample_stats``: the mode and covariance on the
+    unconstrained space. With ``modes="weighted"``, the Gaussians at every mode with a
+    positive definite Hessian, mixed by their Laplace masses."""
+
+    name = "laplace"
+    searches_map = True
+    recorded = (*Method.recorded, "hessian")
+
+    hessian: str = "exact"
+
+    def run(self, model, data, init, search):
+        if search.weighted:
+            return self._at_every_mode(model, data, init, search)
+        space, gaussian, info = laplace(model, data, init, self.observed, self.hessian, self.progress,
+                                        self.map_starts, self.seed)
+        search.modes = info["map_modes"]
+        return Draws(draws(space, gaussian, self.num_samples, self.seed), stats(gaussian),
+                     info["gradient_evaluations"],
+                     {"map_potential": info["map_potential"], "map_grad_norm": info["map_grad_norm"]})
+
+    def _at_every_mode(self, model, data, init, search):
+        """Laplace approximations at every mode with a positive definite Hessian, mixed by their
+        Laplace masses."""
+        space, fitted, masses, evaluations = search.modes_to_fit(model, data, init, self.observed, self.hessian)
+        pairs = [(m, w) for m, w in zip(fitted, masses) if w is not None] or [(fitted[0], None)]
+        gaussians = [Gaussian(z, h, space.labels)  # none positive definite: raises, naming the fix
+                     for (z, _, _, h), _ in pairs]
+        fitted, masses = [m for m, _ in pairs], [w for _, w in pairs]
+        counts = allocate(mode_weights(masses), self.num_samples)
+        per_mode = [draws(space, g, int(c), self.seed + j) for j, (g, c) in enumerate(zip(gaussians, counts))]
+        search.record_weights(space, fitted, masses, masses, counts)
+        return Draws(one_chain(per_mode, counts), stats(gaussians[0]), evaluations)

@@ -18,7 +18,8 @@ either way.
 **Checkpoints.** With ``checkpoint=<dir>``, chain ``c`` writes ``<dir>/chain<c>.pt``
 (atomically) at the end of warmup, every ``checkpoint_every`` draws and at the end: the draws
 so far, their statistics, and the sampler state (position, adapted step size and inverse mass
-matrix, iteration counter, torch / numpy / python RNG states). A rerun with the same settings
+matrix, torch / numpy / python RNG states), all read and restored through Pyro's public kernel
+API (``step_size``, ``inverse_mass_matrix``, ``initial_params``, ``setup``). A rerun with the same settings
 loads finished chains without sampling and continues unfinished ones from their last file:
 the continued draws are bit-identical to an uninterrupted run's. A kill during warmup loses
 that chain's warmup (the adaptation's running averages are not saved); it restarts from its
@@ -36,7 +37,6 @@ from pathlib import Path
 import numpy as np
 import pyro
 import torch
-from pyro.infer.mcmc.util import potential_grad
 from pyro.ops.integrator import register_exception_handler
 from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
@@ -92,7 +92,7 @@ def _set_rng_state(state):
 
 def _save(path, fingerprint, kernel, z, draws, stats):
     state = {
-        "fingerprint": fingerprint, "t": kernel._t, "step_size": kernel.step_size,
+        "fingerprint": fingerprint, "step_size": kernel.step_size,
         "inverse_mass_matrix": [[list(k), v] for k, v in kernel.inverse_mass_matrix.items()],
         "z": z, "rng": _rng_state(), "num_grad_evals": kernel.num_grad_evals,
         "draws": {k: torch.stack(v) for k, v in draws.items()} if draws else {},
@@ -112,19 +112,29 @@ def _load(path, fingerprint):
     return state
 
 
+def _kernel(spec: ChainSpec, state):
+    """A fresh kernel; resuming from ``state``, one past warmup, through Pyro's public API: the
+    saved step size (``step_size``, ``adapt_step_size=False``) and position (``initial_params``),
+    to be set up with no warmup steps."""
+    options = dict(spec.options)
+    if state is not None:
+        options.update(step_size=state["step_size"], adapt_step_size=False)
+    kernel = KERNELS[spec.kernel](
+        spec.model, init_strategy=spec.init, seed_covariance=None if state is not None else spec.seed_covariance,
+        max_plate_nesting=max_plate_nesting(spec.model, spec.data, spec.init), **options)
+    if state is not None:
+        kernel.initial_params = state["z"]
+    return kernel
+
+
 def _restore(kernel, state):
-    """Put a set-up kernel into the saved post-warmup state."""
-    kernel._t = state["t"]
-    kernel._adapter.step_size = state["step_size"]
+    """Put a kernel set up from ``state`` (``_kernel``) into the saved post-warmup state."""
     kernel.mass_matrix_adapter.inverse_mass_matrix = {tuple(k): v for k, v in state["inverse_mass_matrix"]}
-    z = state["z"]
-    grads, potential = potential_grad(kernel.potential_fn, z)
-    kernel._cache(z, potential, grads)
     kernel.num_grad_evals = state["num_grad_evals"]
     kernel.stats.clear()
     kernel.stats.update({k: list(v) for k, v in state["stats"].items()})
     _set_rng_state(state["rng"])
-    return z
+    return state["z"]
 
 
 def run_chain(spec: ChainSpec, chain: int, position: int = 0) -> dict:
@@ -142,11 +152,9 @@ def run_chain(spec: ChainSpec, chain: int, position: int = 0) -> dict:
                        {k: v[:spec.num_samples] for k, v in state["stats"].items()},
                        state["num_grad_evals"], chain)
     pyro.set_rng_seed(spec.seed + chain)
-    kernel = KERNELS[spec.kernel](
-        spec.model, init_strategy=spec.init, seed_covariance=spec.seed_covariance,
-        max_plate_nesting=max_plate_nesting(spec.model, spec.data, spec.init), **spec.options)
+    kernel = _kernel(spec, state)
     with pyro.validation_enabled(False):
-        kernel.setup(spec.num_warmup, **spec.data)
+        kernel.setup(spec.num_warmup if state is None else 0, **spec.data)
         z = kernel.initial_params
         draws = {k: [] for k in sorted(z)}
         bar = tqdm(total=spec.num_warmup + spec.num_samples, desc=f"{spec.kernel} chain {chain}",

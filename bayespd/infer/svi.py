@@ -9,20 +9,26 @@ or ``init_values``).
 """
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import pyro
+import pyro.infer
 import torch
 import xarray as xr
 from pyro import poutine
 from pyro.distributions.transforms import ComposeTransformModule, affine_autoregressive
-from pyro.infer import SVI, Trace_ELBO
+from pyro.infer import Trace_ELBO
 from pyro.infer.autoguide import (AutoContinuous, AutoLowRankMultivariateNormal,
                                   AutoMultivariateNormal, AutoNormal, AutoNormalizingFlow)
 from pyro.optim import ClippedAdam
 from scipy.special import logsumexp
 from torch.distributions.transforms import AffineTransform
 from tqdm.auto import tqdm
+
+from . import laplace as _laplace
+from .method import Draws, Method
+from .mixture import allocate, mode_weights, one_chain
 
 GUIDES = ("normal", "mvn", "lowrank", "flow")
 
@@ -67,7 +73,7 @@ def run_svi(model, data, guide, num_samples, seed, steps, lr, init, progress, ra
     with pyro.get_param_store().scope():
         q = make_guide(model, guide, init, rank)
         optim = ClippedAdam({"lr": lr, "lrd": 0.1 ** (1 / steps)})
-        svi = SVI(model, q, optim, Trace_ELBO(num_particles=particles))
+        svi = pyro.infer.SVI(model, q, optim, Trace_ELBO(num_particles=particles))
         losses = []
         with tqdm(range(steps), f"SVI ({guide})", disable=not progress) as bar:
             for i in bar:
@@ -91,3 +97,44 @@ def log_evidence(model, guide, data, n: int) -> float:
         m = poutine.trace(poutine.replay(model, trace=g)).get_trace(**data)
         log_w.append(float(m.log_prob_sum() - g.log_prob_sum()))
     return float(logsumexp(log_w) - math.log(n))
+
+
+@dataclass(frozen=True)
+class SVI(Method):
+    """Stochastic variational inference: ``guide`` in ``GUIDES``, fitted by ``svi_steps`` of
+    decaying-rate ClippedAdam from ``svi_lr`` with ``svi_particles`` ELBO samples per step
+    (``svi_rank``: the ``"lowrank"`` guide's rank); ``num_samples`` guide draws as one chain.
+    ``sample_stats``: ``svi_loss``. With ``modes="weighted"``, a guide fitted from each mode,
+    mixed by their importance-sampling evidence (``log_evidence``)."""
+
+    name = "svi"
+    recorded = (*Method.recorded, "guide", "svi_steps", "svi_lr", "svi_rank", "svi_particles")
+
+    guide: str = "mvn"
+    svi_steps: int = 2000
+    svi_lr: float = 0.02
+    svi_rank: int | None = None
+    svi_particles: int = 1
+
+    def _fit(self, model, data, init, seed, evidence=False):
+        return run_svi(model, data, self.guide, self.num_samples, seed, self.svi_steps, self.svi_lr, init,
+                       self.progress, self.svi_rank, self.svi_particles, evidence=evidence)
+
+    def run(self, model, data, init, search):
+        if search.weighted:
+            return self._at_every_mode(model, data, init, search)
+        if self.init == "map":
+            init = search.map_init(model, data, init)
+        return Draws(*self._fit(model, data, init, self.seed), self.svi_steps * self.svi_particles)
+
+    def _at_every_mode(self, model, data, init, search):
+        """A guide fitted from every mode worth fitting, mixed by their evidence estimates."""
+        space, fitted, laplace_masses, evaluations = search.modes_to_fit(model, data, init, self.observed, "exact")
+        fits = [self._fit(model, data, _laplace.init_at(space, z), self.seed + j, evidence=True)
+                for j, (z, *_) in enumerate(fitted)]
+        masses = [f[2] for f in fits]
+        counts = allocate(mode_weights(masses), self.num_samples)
+        search.record_weights(space, fitted, laplace_masses, masses, counts)
+        stats = xr.concat([f[1] for f in fits], dim="svi_mode")
+        return Draws(one_chain([f[0] for f in fits], counts), stats,
+                     evaluations + self.svi_steps * self.svi_particles * len(fitted))
