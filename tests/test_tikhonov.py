@@ -6,7 +6,7 @@ import torch
 
 from bayespd.inverse.psi_choice import discrepancy, lcurve, lcurve_corner
 from bayespd.inverse.tikhonov import Objective, tikhonov
-from conftest import plate_scene
+from tests.conftest import plate_scene
 from bayespd.scenes.tikhonov_square import DELTA, K0, MU0, graded_moduli, square_scene
 
 TRUTH = {"K": K0, "G": MU0}
