@@ -3,7 +3,6 @@ gradient, Hessian-vector products, and refused input (the choice of psi:
 tests/inverse/test_psi_choice.py)."""
 import numpy as np
 import pytest
-import torch
 
 from bayespd.inverse.tikhonov import Objective, tikhonov
 from tests.conftest import plate_scene
