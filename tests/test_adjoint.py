@@ -5,7 +5,7 @@ import torch
 
 import bayespd as bp
 from bayespd.linalg import sparse
-from conftest import plate_scene
+from tests.conftest import plate_scene
 
 # delta = 2.2 h keeps every bond away from a kink of the partial-volume weights (|xi| = delta +- h/2)
 BASE = {"K": 3000.0, "G": 1500.0, "delta": 2.2, "load": 1.0}

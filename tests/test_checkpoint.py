@@ -94,7 +94,7 @@ def test_the_plate_model_pickles_after_its_scene_has_solved():
     pickled, so NUTS chains of the plate run in worker processes; the copy solves the same."""
     import pickle
 
-    from conftest import plate_scene
+    from tests.conftest import plate_scene
     from bayespd.models.elastic_plate import ElasticPlate, elastic_plate
 
     scene = plate_scene(nx=10, ny=6, delta_max=2.5)

@@ -214,40 +214,6 @@ def test_implicit_solver_solves_the_linear_system(plate, nugget):
         np.testing.assert_allclose((np.eye(F.n) + 0.7 * C.dense() @ A) @ x, r, atol=1e-10)
 
 
-def test_karhunen_loeve_reproduces_the_kernel():
-    """Squared-exponential kernel R (length 2.5 h) on 20 x 20 particles, keeping 95% of its
-    trace. Against the dense kernel: the eigenpairs are those of the cut-off kernel R_c
-    (|R - R_c| <= exp(-8) entrywise); the truncation error has Frobenius norm
-    sqrt(sum_{k>r} lambda_k^2) and 2-norm lambda_{r+1} (up to |R - R_c|_2); samples
-    C^{1/2} xi have covariance sigma^2 (R_r + nugget I) (quadratic forms within 4.5 SE)."""
-    p = bp.grid_2d(20, 20, 1.0)
-    ell, nugget = 2.5, 0.1
-    C = karhunen_loeve(p.x, SIGMA, ell, fraction=0.95, nugget=nugget)
-    r = len(C.eigenvalues)
-    assert C.fraction >= 0.95 and C.fraction == pytest.approx(C.eigenvalues.sum() / p.n)
-    d2 = ((p.x[:, None, :] - p.x[None, :, :]) ** 2).sum(-1)
-    R = np.exp(-d2 / (2 * ell**2))
-    Rc = np.where(d2 <= (4 * ell) ** 2, R, 0.0)
-    assert np.abs(R - Rc).max() <= np.exp(-8)
-    lam_c = np.linalg.eigvalsh(Rc)[::-1]
-    np.testing.assert_allclose(C.eigenvalues, lam_c[:r], rtol=1e-8)
-    Rr = C.modes @ np.diag(C.eigenvalues) @ C.modes.T
-    assert np.linalg.norm(Rc - Rr) == pytest.approx(np.sqrt((lam_c[r:] ** 2).sum()), rel=1e-6)
-    gap = np.linalg.norm(R - Rc, 2)
-    assert abs(np.linalg.norm(R - Rr, 2) - lam_c[r]) <= gap + 1e-9
-    assert 1 - C.fraction == pytest.approx(np.trace(R - Rr) / p.n)  # the stated trace error
-    # C is sigma^2 (R_r + nugget I) per component, block diagonal over the dim components
-    Cd = C.dense()
-    np.testing.assert_allclose(Cd[0::2, 0::2], SIGMA**2 * (Rr + nugget * np.eye(p.n)), atol=1e-12)
-    assert np.abs(Cd[0::2, 1::2]).max() == 0
-    M = 20000
-    X = C.sample(torch.randn(C.n_xi, M, generator=torch.Generator().manual_seed(5))).numpy()
-    V = np.random.default_rng(1).standard_normal((C.n, 5))
-    var = ((V.T @ X) ** 2).mean(1)
-    expected = np.einsum("ik,ij,jk->k", V, Cd, V)
-    assert np.all(np.abs(var / expected - 1) < 4.5 * np.sqrt(2 / M))
-
-
 def test_runs_are_reproducible_and_refuse_missing_seeds(plate):
     _, F = plate
     L = Langevin(F, white_noise(SIGMA, F.n), ETA, operator=F.matrix)

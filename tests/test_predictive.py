@@ -1,5 +1,6 @@
-"""Posterior-predictive crack ensembles: per-realisation seeds, the aggregate's statistics
-(damage probability, path band, epistemic / aleatoric split), the store's resume, devices."""
+"""Posterior-predictive crack ensembles (bayespd/ensemble/predictive.py): per-realisation seeds,
+the vanishing-noise limit, the store's resume, devices (the aggregate's statistics:
+tests/ensemble/test_stats.py)."""
 import numpy as np
 import pytest
 import torch
@@ -11,8 +12,8 @@ from bayespd.damage import CriticalStretch
 from bayespd.scenes.notched_plate import _unit_lambda_min, notched_plate, plate_body
 from bayespd.solvers import white_noise
 from bayespd.solvers.fracture import StochasticFracture
-from bayespd.ensemble.scene import FractureScene, realise
-from bayespd.ensemble.stats import TIMES, aggregate, load_step_lengths, offsets
+from bayespd.ensemble.scene import realise
+from bayespd.ensemble.stats import TIMES
 from bayespd.ensemble.store import PlanMismatchError
 from bayespd.ensemble.predictive import ensemble, pending, posterior_draws, realisation_inputs, rerun
 
@@ -84,60 +85,6 @@ def test_realisation_inputs_depend_only_on_seed_and_index():
     assert d_mean == -1 and b_mean == b and mean["K"] == pytest.approx(draws["K"].mean(), rel=1e-15)
     counts = np.bincount([realisation_inputs(draws, 0, i)[1] for i in range(2000)], minlength=40)
     assert np.all(np.abs(counts - 50) < 5 * np.sqrt(2000 / 40 * (39 / 40)))
-
-
-def _fake(phi, path, outcome):
-    """A realisation result with the given phi, path and scalar outcome (all outcomes)."""
-    lam = np.array([1.0, 1.0, 2.0, 3.0])
-    return {"t": np.arange(4.0), "load_factor": lam, "reaction": np.zeros((4, 2)), "broken": np.zeros(4, np.int64),
-            "crack_length": np.array([0.0, 1.0, 2.0, 4.0]), "phi": phi, "path": path,
-            **{k: outcome for k in ("peak_load", "peak_load_factor", "failure_load_factor",
-                                    "final_crack_length", "first_failure_time")}, "wall_time_s": 0.0, "cpu_time_s": 0.0}
-
-
-def test_aggregate_splits_total_spread_into_aleatoric_and_epistemic():
-    """Outcome Y = a(params) + e with sd(a) = 2, sd(e) = 1: the posterior ensemble's sd is
-    sqrt(5), the mean ensemble's 1, the epistemic part 2 (law of total variance); 2000
-    realisations each: the sd estimates are within 4 sd(s) = 4 s / sqrt(2 n) < 0.07 of it.
-    Straight paths at offset c across the crack line have band quantiles those of c;
-    P(phi > 0.4) is the fraction of realisations above the threshold."""
-    rng = np.random.default_rng(1)
-    n, x = 2000, np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]])
-    scene = FractureScene(lambda p: None, ("K",), [1.0, 2.0, 3.0], 1.0, x, origin=(0.0, 1.0))
-    results = []
-    for kind, epistemic in (("posterior", 2.0), ("mean", 0.0)):
-        y = epistemic * rng.standard_normal(n) + rng.standard_normal(n)
-        c = rng.standard_normal(n)
-        phi = rng.uniform(size=(n, 3)) * [0.5, 1.0, 0.0]  # P(phi > 0.4): 0.2, 0.6, 0
-        for i in range(n):
-            path = np.array([[0.0, 1 + c[i]], [5.0, 1 + c[i]], [10.0, 1 + c[i]]])
-            results.append((kind, i, _fake(phi[i], path, y[i]), {"K": 1.0}, i, i))
-    ds = aggregate(results, scene, seed=0)
-    spread = ds["spread"].sel(outcome="failure_load_factor")
-    assert spread.sel(source="total") == pytest.approx(np.sqrt(5), abs=4 * np.sqrt(5) / np.sqrt(2 * n))
-    assert spread.sel(source="aleatoric") == pytest.approx(1.0, abs=4 / np.sqrt(2 * n))
-    assert spread.sel(source="epistemic") == pytest.approx(2.0, abs=0.15)
-    c_post = [r[2]["path"][0, 1] - 1 for r in results if r[0] == "posterior"]
-    band = ds["path_quantiles"].sel(kind="posterior")
-    assert np.allclose(band.values, np.quantile(c_post, [0.05, 0.5, 0.95])[:, None], atol=1e-12)
-    assert np.all(ds["path_coverage"].values == 1.0)
-    assert np.allclose(ds["probability"].values, [[0.2, 0.6, 0.0]] * 2, atol=0.04)  # 4 binomial sd at n = 2000
-    assert ds["probability"].sel(kind="mean").values[0] == np.mean(
-        [r[2]["phi"][0] > 0.4 for r in results if r[0] == "mean"])
-    assert np.array_equal(ds["crack_length_at_load"].values[0], [0.0, 1.0, 2.0, 4.0][1:])
-
-
-def test_offsets_across_a_slanted_line_and_step_lengths():
-    """A path on the line y = x + 1 seen from origin (0, 0) along (1, 1)/sqrt2 has offset
-    1/sqrt2 everywhere it reaches, NaN beyond, whatever its point order; with ``hold`` the
-    crack length of a load step is the one at its last repeat."""
-    path = np.array([[3.0, 4.0], [0.0, 1.0], [1.0, 2.0]])
-    s = np.array([-1.0, 1.0, 2.0, 4.0, 6.0])
-    o = offsets(path, np.zeros(2), np.array([1.0, 1.0]) / np.sqrt(2), s)
-    inside = (s >= 1 / np.sqrt(2)) & (s <= 7 / np.sqrt(2))
-    assert np.allclose(o[inside], 1 / np.sqrt(2), atol=1e-14) and np.all(np.isnan(o[~inside]))
-    lengths = load_step_lengths(np.array([1.0, 2.0, 2.0, 2.0, 3.0]), np.array([0, 1, 2, 3, 3.5]), [1.0, 2.0, 3.0, 4.0])
-    assert np.array_equal(lengths[:3], [0, 3, 3.5]) and np.isnan(lengths[3])
 
 
 def test_vanishing_noise_makes_the_spread_epistemic(quiet_scene, tmp_path):
@@ -232,9 +179,3 @@ def test_bad_input_names_the_fix(noisy_scene, tmp_path):
         ensemble(tree, noisy_scene, 1, store=tmp_path)
     with pytest.raises(ValueError, match="workers must be a positive integer"):
         ensemble(tree, noisy_scene, 2, n_mean=0, store=tmp_path, workers=0)
-    with pytest.raises(ValueError, match="origin and direction must be 2D"):
-        FractureScene(print, ("K",), [1.0], 1.0, np.zeros((3, 2)), direction=(0.0, 0.0))
-    with pytest.raises(ValueError, match="dt must be positive"):
-        FractureScene(print, ("K",), [1.0], 0.0, np.zeros((3, 2)))
-    with pytest.raises(ValueError, match='"exact" or "lagged"'):
-        FractureScene(print, ("K",), [1.0], 1.0, np.zeros((3, 2)), tangent="secant")

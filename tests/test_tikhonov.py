@@ -1,12 +1,11 @@
 """Tikhonov inversion (seed 000 eq 12): recovery of constants and fields, one adjoint solve per
-gradient, Hessian-vector products, the choice of psi, and refused input."""
+gradient, Hessian-vector products, and refused input (the choice of psi:
+tests/inverse/test_psi_choice.py)."""
 import numpy as np
 import pytest
-import torch
 
-from bayespd.inverse.psi_choice import discrepancy, lcurve, lcurve_corner
 from bayespd.inverse.tikhonov import Objective, tikhonov
-from conftest import plate_scene
+from tests.conftest import plate_scene
 from bayespd.scenes.tikhonov_square import DELTA, K0, MU0, graded_moduli, square_scene
 
 TRUTH = {"K": K0, "G": MU0}
@@ -127,49 +126,6 @@ def test_hessian_vector_product_matches_the_gradient(small_field):
     gn = Objective(scene, y, {"G": truth["G"]}, hessian="gauss-newton", **kw)
     np.testing.assert_allclose(gn.hessp(exact.z0, v), exact.hessp(exact.z0, v), rtol=1e-8,
                                atol=1e-10 * np.abs(exact.hessp(exact.z0, v)).max())
-
-
-@pytest.fixture(scope="module")
-def noisy_square(square):
-    scene, y = square
-    noise = 0.01 * float(y.abs().max())
-    gen = torch.Generator().manual_seed(7)
-    return scene, y + noise * torch.randn(y.shape, generator=gen), noise
-
-
-def test_discrepancy_principle_matches_the_noise_level(noisy_square):
-    """The chosen psi leaves a residual rms equal to tau times the noise sd (rtol 1e-3); the
-    sweep brackets it. tau = 1.1: this noise draw's own rms is 1.06 sd (242 entries: the
-    sample rms scatters by 1/sqrt(2 * 242) = 4.5 %), so tau = 1 has no solution here."""
-    scene, y, noise = noisy_square
-    ref = {"K": 300.0, "G": 200.0}
-    choice = discrepancy(scene, y, ref, noise=noise, tau=1.1, psis=np.logspace(-1, 5, 7),
-                         fixed={"delta": DELTA}, sigma=noise, gtol=1e-8)
-    assert choice.attained
-    assert abs(choice.result.residual_rms / (1.1 * noise) - 1) < 1e-3
-    assert choice.residual_rms[0] < 1.1 * noise < choice.residual_rms[-1]
-    with pytest.raises(ValueError, match="noise level"):
-        discrepancy(scene, y, ref, noise=None, psis=[1.0, 2.0], fixed={"delta": DELTA})
-
-
-def test_lcurve_corner_of_a_known_curve():
-    """(log rho, log eta) = (e^t, e^-t), t = log psi, is the hyperbola b = 1/a: by symmetry its
-    curvature peaks at a = b = 1, psi = 1; second-order differences on a 0.25-step grid
-    place it to O(0.25^2)."""
-    psis = np.exp(np.arange(-3.0, 3.01, 0.25) + 0.1)
-    psi, kappa = lcurve_corner(psis, np.exp(np.exp(np.log(psis))), np.exp(np.exp(-np.log(psis))))
-    assert abs(np.log(psi)) < 0.03
-    assert kappa.max() == pytest.approx(1 / np.sqrt(2), rel=0.05)  # curvature of b = 1/a at (1, 1)
-
-
-def test_lcurve_on_the_noisy_square(noisy_square):
-    """The corner lies where the misfit stops being flat: its residual stays within 10 % of the
-    unregularised fit's (the noise floor), while the strongest psi of the sweep misfits more."""
-    scene, y, noise = noisy_square
-    choice = lcurve(scene, y, {"K": 300.0, "G": 200.0}, psis=np.logspace(-3, 3, 7),
-                    fixed={"delta": DELTA}, sigma=noise, gtol=1e-8)
-    floor = tikhonov(scene, y, {"K": 300.0, "G": 200.0}, fixed={"delta": DELTA}, sigma=noise).residual_rms
-    assert choice.result.residual_rms < 1.1 * floor < choice.residual_rms[-1]
 
 
 def test_bad_input_is_refused(small_field):

@@ -38,14 +38,6 @@ def test_poisson_ratio_at_or_beyond_limits(nu):
         bp.moduli_from_young(4000.0, nu)
 
 
-def test_empty_regions(plate):
-    p = plate[0]
-    with pytest.raises(ValueError, match="load region is empty"):
-        bp.Load(p.box((100, 100), (101, 101)), (1.0, 0.0))
-    with pytest.raises(ValueError, match="Dirichlet region is empty"):
-        bp.Dirichlet(np.zeros(p.n, bool))
-
-
 def test_thin_dirichlet_layer(plate):
     p, mat, _ = plate
     with pytest.warns(UserWarning, match="at least one horizon thick"):
@@ -64,33 +56,9 @@ def test_observations_outside_body(plate):
     np.testing.assert_allclose(obs(u), [[3.25 + 2 * 1.5, 3 * 3.25 + 4 * 1.5]], rtol=1e-12)
 
 
-@pytest.mark.parametrize("x, volume, match", [
-    ([[0.0, 0.0], [1.0, 0.0], [0.0, 0.0]], [1.0, 1.0, 1.0], "coincide.*remove duplicate"),
-    ([[0.0, 0.0], [1.0, 0.0]], [1.0, 0.0], "zero or negative volume"),
-    ([[0.0, 0.0], [1.0, 0.0]], [1.0, -2.0], "zero or negative volume"),
-    ([[0.0, np.nan], [1.0, 0.0]], [1.0, 1.0], "NaN or inf"),
-    ([[0.0, 0.0], [1.0, 0.0]], [1.0, np.inf], "NaN or inf"),
-    ([[0.0, 0.0], [1.0, 0.0]], [1.0], "one entry per particle"),
-])
-def test_bad_particle_sets(x, volume, match):
-    with pytest.raises(ValueError, match=match):
-        bp.from_points(x, volume)
-
-
-def test_from_points_spacing_from_volumes():
-    p = bp.from_points(bp.grid_3d(2.0, 2.0, 2.0, 0.5).x, np.full(64, 0.125))
-    assert p.h == pytest.approx(0.5) and p.dim == 3
-
-
 def test_isolated_particle_has_empty_family():
     p = bp.grid_2d(6.0, 4.0, 1.0)
     lonely = bp.from_points(np.vstack([p.x, [[20.0, 20.0]]]), np.append(p.volume, 1.0))
     mat = bp.BondBased(lonely, bp.find_bonds(lonely, 2.0))
     with pytest.raises(ValueError, match="particle 24 .* empty family"):
         mat.stiffness({"K": 1.0}, 2.0)
-
-
-def test_non_finite_load():
-    p = bp.grid_2d(6.0, 4.0, 1.0)
-    with pytest.raises(ValueError, match="load contains NaN"):
-        bp.Load(p.layer("right", 1.0), (np.nan, 0.0))

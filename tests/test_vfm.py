@@ -9,7 +9,7 @@ from bayespd.inverse import virtual_fields as vf
 from bayespd.inverse.vfm import (VirtualWork, identify, moduli_from_constants, optimise,
                                  pd_constants)
 from bayespd.reference import three_point_bending as tpb
-from conftest import plate_scene
+from tests.conftest import plate_scene
 
 H, DELTA = 2.0, 6.0  # coarse beam: 1024 particles
 
