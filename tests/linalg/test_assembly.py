@@ -6,7 +6,7 @@ import scipy.sparse as sp
 import torch
 
 from bayespd.linalg.assembly import Gram, internal_force, numeric_values, union_pattern
-from linalg_systems import lps_terms
+from tests.linalg.linalg_systems import lps_terms
 
 
 def reference_matrix(terms):

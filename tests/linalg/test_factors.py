@@ -7,7 +7,7 @@ import scipy.sparse as sp
 from bayespd import linalg
 from bayespd.linalg import sparse
 from bayespd.linalg.factors import shifted_factor, spd_factor
-from linalg_systems import grid_spd
+from tests.linalg.linalg_systems import grid_spd
 
 needs_cholmod = pytest.mark.skipif(sparse.cholmod is None, reason="orderings are CHOLMOD's")
 

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from bayespd.linalg import sparse
-from linalg_systems import grid_spd
+from tests.linalg.linalg_systems import grid_spd
 
 BACKENDS = ["splu"] + (["cholmod"] if sparse.cholmod is not None else [])
 

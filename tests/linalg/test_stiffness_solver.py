@@ -8,7 +8,7 @@ import bayespd as bp
 from bayespd import linalg
 from bayespd.linalg import sparse
 from bayespd.linalg.stiffness_solver import Assembly
-from linalg_systems import lps_terms
+from tests.linalg.linalg_systems import lps_terms
 
 BACKENDS = ["splu"] + (["cholmod"] if sparse.cholmod is not None else [])
 

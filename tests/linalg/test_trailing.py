@@ -7,7 +7,7 @@ import scipy.sparse as sp
 
 from bayespd.linalg import trailing
 from bayespd.linalg.sparse import NotPositiveDefiniteError
-from linalg_systems import grid_spd
+from tests.linalg.linalg_systems import grid_spd
 
 pytestmark = pytest.mark.skipif(not trailing.available(), reason="the trailing factor needs CHOLMOD")
 
