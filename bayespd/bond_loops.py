@@ -9,9 +9,7 @@ do the torch path's operations in its order (e = eta . (y + xi) / (|y| + |xi|),
 ``nonlinear``), with a correctly rounded |y| where torch's sqrt and hypot are off by an ulp
 now and then: they agree with it to a few ulp, in float64 and float32 (tests/test_nonlinear.py).
 The torch path stays for what they do not cover (``usable``): gradients, other devices, LPS.
-For the 10k-particle plate a step's stretch and force take ~3 ms instead of 10 on one core;
-the force of a 64k-particle 3D cube 93 ms instead of 843 (benchmarks/README.md, "Compiled
-bond loops").
+Figures: benchmarks/README.md, "Compiled bond loops".
 
 The work of a fracture run between its solves, each one pass where numpy, torch or scipy
 take several (benchmarks/fracture_changes.py): ``tangent_change``, the entries of the
@@ -113,7 +111,7 @@ def components(n: int, i: np.ndarray, j: np.ndarray, keep: np.ndarray | None = N
 
 
 def _compiled(fn):
-    """Compiled on first use in each process (~0.35 s a kernel, dimension and dtype), not
+    """Compiled on first use in each process (per kernel, dimension and dtype), not
     cached on disk: a kernel that takes a compiled function as its argument misses numba's
     cache in every new process and would add a file to it each time."""
     return fn if numba is None else numba.njit(nogil=True, inline="always")(fn)
@@ -125,9 +123,9 @@ def _cached(fn):
 
 
 # (y, |y|, e) of bond b from particle p to q, y a tuple: the components written out, which the
-# compiler keeps in registers (a loop over an array of them: 1.5x slower; a branch on the
-# dimension inside one function: 8x slower). The kernels take one as their first argument
-# and are compiled for it.
+# compiler keeps in registers (a loop over an array of them, or a branch on the dimension
+# inside one function, is slower). The kernels take one as their first argument and are
+# compiled for it.
 
 @_compiled
 def _bond2(u, p, q, xi, length, b):  # pragma: no cover (compiled)
@@ -175,7 +173,7 @@ def _components(i, j, keep, labels):  # pragma: no cover (compiled)
     """Union-find with path halving, each root the lowest vertex of its piece; then the
     labels in vertex order (a root comes before the rest of its piece). The root of the
     first end is kept while consecutive edges share it (edges sorted by their first end:
-    one find per vertex instead of one per edge; 1.3 -> 0.95 ms for the 10k-particle plate)."""
+    one find per vertex instead of one per edge)."""
     parent = np.arange(labels.shape[0])
     first, root = -1, -1
     for b in range(i.shape[0]):

@@ -6,9 +6,8 @@ a loop's large temporaries soon come from the heap. Setting any of MALLOC_TRIM_T
 MALLOC_MMAP_THRESHOLD_, MALLOC_TOP_PAD_ or MALLOC_MMAP_MAX_ turns that adjustment off, and
 Dask's nanny starts every worker with MALLOC_TRIM_THRESHOLD_=65536
 (``distributed.nanny.pre-spawn-environ``): every torch temporary over 128 KiB (one value per
-bond is 1.4 MB at 10k particles) is then a new mapping. A stochastic fracture realisation
-took 26.0 s there instead of 11.5 s (``MALLOC_TRIM_THRESHOLD_=65536 python
-benchmarks/fracture.py --runs lagged:512 --seeds 3``).
+bond is 1.4 MB at 10k particles) is then a new mapping, and a realisation runs at half
+speed (benchmarks/README.md, "Figures formerly in docstrings").
 """
 from __future__ import annotations
 

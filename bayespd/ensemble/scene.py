@@ -99,14 +99,13 @@ def realise(scene: FractureScene, params: dict, seed: int, device=None) -> dict:
 
 
 def realise_batch(scene: FractureScene, items: list, device=None) -> list:
-    """Realisations ``items = [(params, seed), ...]``, run in lock-step (``solvers.lockstep``,
+    """Realisations ``items = [(params, seed), ...]``, run in lock-step (``linalg.lockstep``,
     BATCH columns to a solve, whatever the company: each gives the bits it gives alone), each
     built at its ``params``, with Brownian seed ``seed``, under ``torch.device(device)``
     (default CPU). One torch and one BLAS thread in every BLAS library loaded (numpy's,
     scipy's, CHOLMOD's: the result is the same bit for bit in any process or worker, and
-    workers sharing the cores do not oversubscribe them, which measured 2x slower with two
-    workers on two cores), and large temporaries kept on the heap where the worker's
-    environment fixed glibc's thresholds (Dask's: 2.3x slower otherwise,
+    workers sharing the cores do not oversubscribe them), and large temporaries kept on the
+    heap where the worker's environment fixed glibc's thresholds (Dask's,
     ``bayespd.ensemble.heap``). Returns, per item, float64 / int64 numpy arrays (see
     ``Realisation``) plus the derived peak load, failure load factor, first-failure time and
     final crack length, and its share of the batch's wall and CPU time; or the exception its
