@@ -41,6 +41,7 @@ from bayespd.materials import NonFiniteParameterError
 from bayespd.nonlinear import NonlinearBonds
 from bayespd.solvers import (Langevin, NumericalInstabilityError, critical_time_step, linear_elastic,
                              lumped_mass, velocity_verlet, white_noise)
+from bayespd.linalg.factors import spd_factor
 from bayespd.linalg.sparse import NotPositiveDefiniteError
 
 EPS64 = float(np.finfo(np.float64).eps)
@@ -57,7 +58,7 @@ def dirichlet_solve(mat, params, delta, fixed, u_fixed, body_force=None):
     t0 = time.perf_counter()
     d = mat.dim
     fixed_dof = np.repeat(fixed, d)
-    values = mat.numeric_stiffness(params, delta)
+    values = mat.numeric_stiffness(dict(params, delta=delta))
     K = mat.pattern.matrix(values).tocsr()
     sub, entries = mat.pattern.restrict(~fixed_dof)
     free_values = values[torch.as_tensor(entries)]
@@ -155,7 +156,7 @@ def incompressible(quick: bool) -> dict:
             refused[str(nu)] = str(e)
     p = bp.grid_2d(8, 8, 1.0)
     try:
-        bp.LPS(p, bp.find_bonds(p, 3.0), plane="strain").numeric_stiffness({"K": float("inf"), "G": 1.0}, 3.0)
+        bp.LPS(p, bp.find_bonds(p, 3.0), plane="strain").numeric_stiffness({"K": float("inf"), "G": 1.0, "delta": 3.0})
         refused["K=inf"] = None
     except NonFiniteParameterError as e:
         refused["K=inf"] = str(e)
@@ -276,21 +277,21 @@ def isolated_body(cls=bp.LPS):
 def isolated(quick: bool) -> dict:
     mat, params, c, load, intact, k = isolated_body()
     try:
-        linear_elastic(mat, params, 3.0, load, eps=0.0, constraints=c, intact=intact).equilibrium()
+        linear_elastic(mat, dict(params, delta=3.0), load, eps=0.0, constraints=c, intact=intact).equilibrium()
         refusal = None
     except NotPositiveDefiniteError as e:
         refusal = str(e)
     # reference: the damaged body without particle k's dofs, eps = 0 (what quasistatic solves)
-    F0 = linear_elastic(mat, params, 3.0, load, eps=0.0, constraints=c, intact=intact)
+    F0 = linear_elastic(mat, dict(params, delta=3.0), load, eps=0.0, constraints=c, intact=intact)
     keep = np.ones(F0.n, dtype=bool)
     pos = np.searchsorted(c.free_dofs, [2 * k, 2 * k + 1])
     keep[pos] = False
-    ref = bp.solvers.spd_factor(F0.matrix[keep][:, keep]).solve(F0.load.numpy()[keep])
+    ref = spd_factor(F0.matrix[keep][:, keep]).solve(F0.load.numpy()[keep])
     lam_min = float(sla.eigsh(F0.matrix[keep][:, keep].tocsc(), k=1, sigma=0, return_eigenvectors=False)[0])
     rows = []
     for eps in (1e-2, 1e-4, 1e-6, 1e-8):
         t0 = time.perf_counter()
-        u = linear_elastic(mat, params, 3.0, load, eps=eps, constraints=c, intact=intact).equilibrium().numpy()
+        u = linear_elastic(mat, dict(params, delta=3.0), load, eps=eps, constraints=c, intact=intact).equilibrium().numpy()
         rows.append({"eps": eps, "eps_over_lambda_min": eps / lam_min, "error": rel(u[keep], ref),
                      "isolated_displacement": float(np.abs(u[pos]).max()),
                      "stable": bool(np.all(np.isfinite(u))), "wall_time_s": time.perf_counter() - t0})
@@ -312,12 +313,12 @@ def wave_plate(side: int, m: float = 3.0, amplitude: float = 1e-4):
     u0 = torch.zeros(p.n, 2)
     u0[:, 0] = torch.as_tensor(amplitude * 4 * np.exp(-r2 / 16))
     M = lumped_mass(p, 1.0)
-    dt = critical_time_step(linear_elastic(mat, {"K": 1.0}, m).matrix, M)
+    dt = critical_time_step(linear_elastic(mat, {"K": 1.0, "delta": m}).matrix, M)
     return kin, M, u0.reshape(-1), dt
 
 
 def verlet(kin, M, u0, dt, steps, dtype):
-    coef = kin.at({"K": 1.0}, kin.material.bonds.delta_max, dtype)
+    coef = kin.at({"K": 1.0, "delta": kin.material.bonds.delta_max}, dtype)
     n = kin.n
 
     def force(u):
@@ -339,8 +340,8 @@ def precision(quick: bool) -> dict:
     energy_gap = np.abs(t32.energy - t64.energy) / E0
     # the kernel at strain ~1e-4: cancellation-free extension vs |y| - |xi| in float32
     u = u0.view(-1, 2)
-    f64 = kin.at({"K": 1.0}, 3.0).force(u)
-    f32 = kin.at({"K": 1.0}, 3.0, torch.float32).force(u.float())
+    f64 = kin.at({"K": 1.0, "delta": 3.0}).force(u)
+    f32 = kin.at({"K": 1.0, "delta": 3.0}, torch.float32).force(u.float())
     y, r, _ = kin.kinematics(u.float())
     xi, L = kin.geometry(torch.float32)
     naive = r - L
@@ -371,7 +372,7 @@ def precision(quick: bool) -> dict:
 def langevin_plate(eps: float = 0.05):
     """LPS plate 6 x 6, m = 2, no supports, confinement eps: A = K + eps I (72 dofs)."""
     p = bp.grid_2d(6.0, 6.0, 1.0)
-    return linear_elastic(bp.LPS(p, bp.find_bonds(p, 2.0)), {"K": 1.0, "G": 0.6}, 2.0, eps=eps)
+    return linear_elastic(bp.LPS(p, bp.find_bonds(p, 2.0)), {"K": 1.0, "G": 0.6, "delta": 2.0}, eps=eps)
 
 
 def mode_variance_ratios(U, F, eta):

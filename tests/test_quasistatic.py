@@ -10,7 +10,7 @@ from bayespd.damage import CriticalStretch, DamageODE
 from bayespd.solvers.quasistatic import LoadedBody, equilibrium, quasi_static
 
 H, DELTA, U = 1.0, 3.0, 0.1  # spacing, horizon, pull at load factor 1 (mm)
-PARAMS = {"K": 1000.0, "G": 600.0}
+PARAMS = {"K": 1000.0, "G": 600.0, "delta": DELTA}
 
 
 def bar(cls=bp.BondBased, pull=(U, 0.0)):
@@ -19,7 +19,7 @@ def bar(cls=bp.BondBased, pull=(U, 0.0)):
     mat = cls(p, bp.find_bonds(p, DELTA))
     params = {k: PARAMS[k] for k in mat.param_names}
     bcs = [bp.Dirichlet.layer(p, "left", DELTA), bp.Dirichlet.layer(p, "right", DELTA, pull)]
-    return mat, params, bcs, LoadedBody(mat, params, DELTA, bcs)
+    return mat, params, bcs, LoadedBody(mat, params, bcs)
 
 
 def crossing(body, x=10.0):
@@ -95,7 +95,7 @@ def test_force_control_stops_when_the_loaded_piece_comes_loose():
     p = bp.grid_2d(20.0, 4.0, H)
     mat = bp.BondBased(p, bp.find_bonds(p, DELTA))
     load = bp.Load(p.layer("right", DELTA), (20.0, 0.0))
-    body = LoadedBody(mat, {"K": 1000.0}, DELTA, [bp.Dirichlet.layer(p, "left", DELTA)], [load])
+    body = LoadedBody(mat, {"K": 1000.0, "delta": DELTA}, [bp.Dirichlet.layer(p, "left", DELTA)], [load])
     s = body.kinematics.stretch(quasi_static(body, [1e-3]).u) / 1e-3
     s0 = torch.full((body.n_bonds,), 0.01)
     s0[crossing(body)] = 0.005
@@ -113,7 +113,7 @@ def test_a_detached_particle_leaves_the_system_nonsingular(eps):
     """A free particle whose bonds are all broken: eps = 0 drops its dofs (it keeps its
     displacement), eps > 0 keeps them (confinement, seed 002 eq 3: it returns to 0)."""
     mat, params, bcs, body = bar()
-    body = LoadedBody(mat, params, DELTA, bcs, eps=eps)
+    body = LoadedBody(mat, params, bcs, eps=eps)
     k = int(np.flatnonzero(body.particles.box([9, 1], [11, 3]))[0])
     intact = torch.ones(body.n_bonds)
     intact[torch.as_tensor((body.bonds.i == k) | (body.bonds.j == k))] = 0.0
@@ -140,7 +140,7 @@ def test_a_bond_listed_twice_is_refused(flip):
     i, j = (b.j[:1], b.i[:1]) if flip else (b.i[:1], b.j[:1])
     twice = bp.Bonds(np.r_[b.i, i], np.r_[b.j, j], np.r_[b.xi, np.asarray(p.x[j] - p.x[i])],
                      np.r_[b.length, b.length[:1]], b.h, b.delta_max, b.rule)
-    body = LoadedBody(bp.BondBased(p, twice), {"K": 1000.0}, DELTA,
+    body = LoadedBody(bp.BondBased(p, twice), {"K": 1000.0, "delta": DELTA},
                       [bp.Dirichlet.layer(p, "left", DELTA), bp.Dirichlet.layer(p, "right", DELTA, (U, 0.0))])
     with pytest.raises(ValueError, match="listed twice"):
         body.operator(torch.ones(body.n_bonds), body.constraints.free_dofs)
