@@ -51,14 +51,14 @@ STRAIN = torch.tensor([[1e-3, 2e-4], [2e-4, -5e-4]])  # volumetric + deviatoric
 
 # --- shared pieces ----------------------------------------------------------------------------
 
-def dirichlet_solve(mat, params, delta, fixed, u_fixed, body_force=None):
+def dirichlet_solve(mat, params, fixed, u_fixed, body_force=None):
     """Direct solve of K_ff u_f = V b_f - K_fc u_c (fixed particles at u_fixed, (N, dim)).
     Returns (u (N, dim), A = K_ff (scipy), rhs, factor, seconds for assembly + factorisation
     + solve, the rounding amplification of the right-hand side (see ``error_bound``))."""
     t0 = time.perf_counter()
     d = mat.dim
     fixed_dof = np.repeat(fixed, d)
-    values = mat.numeric_stiffness(dict(params, delta=delta))
+    values = mat.numeric_stiffness(params)
     K = mat.pattern.matrix(values).tocsr()
     sub, entries = mat.pattern.restrict(~fixed_dof)
     free_values = values[torch.as_tensor(entries)]
@@ -121,7 +121,7 @@ def patch_test(cls, m: float, params: dict, plane: str = "stress", interior: int
     setup = time.perf_counter() - t0
     exact = (torch.as_tensor(p.x) - side / 2) @ STRAIN.T
     fixed = ~p.box(p.lower() + layer, p.upper() - layer)
-    u, A, _, _, wall, cancellation = dirichlet_solve(mat, params, delta, fixed, exact)
+    u, A, _, _, wall, cancellation = dirichlet_solve(mat, dict(params, delta=delta), fixed, exact)
     free = ~fixed
     cond = condition_number(A)
     err = rel(u[free].numpy(), exact[free].numpy())
@@ -175,16 +175,16 @@ def contrast_bar(contrast: float, cls=bp.LPS, length: float = 40.0, width: float
     mat = cls(p, bp.find_bonds(p, delta))
     stiff = torch.as_tensor(p.x[:, 0] > length / 2)
     K = torch.where(stiff, contrast, 1.0)
-    params = {"K": K, "G": 0.6 * K} if cls is bp.LPS else {"K": K}
+    params = {"K": K, "G": 0.6 * K, "delta": delta} if cls is bp.LPS else {"K": K, "delta": delta}
     fixed = p.layer("left", delta)
     load = bp.Load(p.layer("right", 1.0), (1.0, 0.0)).nodal(p) / torch.as_tensor(p.volume)[:, None]
-    return mat, params, delta, fixed, load
+    return mat, params, fixed, load
 
 
 def contrast_case(contrast: float, cls=bp.LPS, **kw) -> dict:
-    mat, params, delta, fixed, load = contrast_bar(contrast, cls, **kw)
+    mat, params, fixed, load = contrast_bar(contrast, cls, **kw)
     try:
-        u, A, rhs, factor, wall, _ = dirichlet_solve(mat, params, delta, fixed, torch.zeros(mat.particles.n, 2), load)
+        u, A, rhs, factor, wall, _ = dirichlet_solve(mat, params, fixed, torch.zeros(mat.particles.n, 2), load)
     except NotPositiveDefiniteError as e:
         return {"contrast": contrast, "material": cls.__name__, "stable": False, "refused": str(e)}
     free = np.repeat(~fixed, 2)
@@ -233,7 +233,7 @@ def quadratic_error(m: float, interior: int = 10) -> dict:
     mat = bp.BondBased(p, bp.find_bonds(p, float(m)))
     exact, b = navier_quadratic(p, side, 1e-3 / side)
     fixed = ~p.box(p.lower() + layer, p.upper() - layer)
-    u, *_ = dirichlet_solve(mat, {"K": 1.0}, float(m), fixed, exact, b)
+    u, *_ = dirichlet_solve(mat, {"K": 1.0, "delta": float(m)}, fixed, exact, b)
     free = ~fixed
     return {"error": rel(u[free].numpy(), exact[free].numpy()), "wall_time_s": time.perf_counter() - t0}
 

@@ -12,7 +12,7 @@ internal nodal force -(K u)_i) and f the scene's nodal loads. The extracted text
 garbles eq 30; the form above is derived from eqs 21 and 24a and is what we use. Seed 001's
 eq 31 evaluates W*_ext for a point load; here the same sum runs over the loaded particles.
 
-Linearity (derived here, not stated in the paper): with the energy of ``materials.py``,
+Linearity (derived here, not stated in the paper): with the energy of ``materials/lps.py``,
 
     W_i = (a_s / 2) theta_i^2 + (a_d / (2 m_i)) sum_j w e_ij^2 V_j,
     a_s = kappa - c G / d^2,   a_d = c G    (c = 8 in 2D, 15 in 3D; kappa = in-plane bulk),
