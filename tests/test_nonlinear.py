@@ -162,7 +162,8 @@ def test_compiled_loops_match_the_torch_path(plate, dim, dtype, monkeypatch):
         mat, params, nl = setup(plate, bp.BondBased)
     else:
         p = bp.grid_3d(4.0, 4.0, 3.0, 1.0)
-        mat, params = bp.BondBased(p, bp.find_bonds(p, 2.0)), {"K": torch.linspace(2.0, 3.0, p.n), "G": 1.2, "delta": 1.8}
+        mat = bp.BondBased(p, bp.find_bonds(p, 2.0))
+        params = {"K": torch.linspace(2.0, 3.0, p.n), "G": 1.2, "delta": 1.8}
         nl = NonlinearBonds(mat)
     u = random_u(mat.particles.n, 0.05, dim=dim).to(dtype)
     mu = damage_state(mat.bonds, mat.particles).to(dtype)

@@ -1,4 +1,4 @@
-"""3D LPS and bond-based: patch test, classical energy, symmetry and rigid-body modes."""
+"""3D LPS and bond-based (PMB, conical): patch test, classical energy, symmetry and rigid-body modes."""
 import numpy as np
 import pytest
 import torch
@@ -25,7 +25,7 @@ def cube():
     return p, bp.find_bonds(p, 2.5)
 
 
-@pytest.mark.parametrize("cls", [bp.LPS, bp.BondBased])
+@pytest.mark.parametrize("cls", [bp.LPS, bp.BondBased, bp.ConicalBondBased])
 def test_patch_test_3d(cube, cls):
     p, bonds = cube
     mat = cls(p, bonds)
@@ -50,7 +50,7 @@ def test_lps_3d_energy_density(cube):
         np.testing.assert_allclose(W, float(classical_energy_density(K3, G3, eps)), rtol=rtol)
 
 
-@pytest.mark.parametrize("cls", [bp.LPS, bp.BondBased])
+@pytest.mark.parametrize("cls", [bp.LPS, bp.BondBased, bp.ConicalBondBased])
 def test_3d_symmetric_with_six_rigid_modes(cls):
     p = bp.grid_3d(5.0, 4.0, 4.0, 1.0)
     mat = cls(p, bp.find_bonds(p, 2.0))

@@ -23,6 +23,7 @@ Newton) and the compiled ``bond_loops`` apply. Everything else here is shared.
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from functools import cached_property
 
 import numpy as np
@@ -37,7 +38,7 @@ from bayespd.nonlinear import product
 from bayespd.surface import bond_factors
 
 
-class Material:
+class Material(ABC):
     """A peridynamic law on fixed particles and bonds (see the module docstring).
 
     ``influence`` weights the bonds (default constant); ``surface_correction=True`` scales
@@ -165,20 +166,25 @@ class Material:
         """Linearised bond extension e = n . (u_j - u_i) for u of shape (N, dim)."""
         return self.extension_gram.apply(self.extension_data, u.reshape(-1))
 
+    @abstractmethod
     def stiffness_terms(self, moduli: dict, params: dict, factor=1.0, intact=None) -> list:
-        raise NotImplementedError
+        """Gram terms [(A_t, data, k_t)] at intact fractions ``intact`` (None: all intact),
+        the bond terms times the surface ``factor``."""
 
+    @abstractmethod
     def energy_parts(self, moduli: dict, params: dict, u: torch.Tensor, factor=1.0):
-        raise NotImplementedError
+        """(W_fixed, W_bond) per particle at u (N, dim); W_bond's bonds carry ``factor``."""
 
+    @abstractmethod
     def bulk_energy_parts(self, moduli: dict, params: dict, axis: int):
-        raise NotImplementedError
+        """(W_fixed, W_bond) at a complete lattice family under unit strain along ``axis``."""
 
+    @abstractmethod
     def nonlinear(self, kinematics, params: dict, dtype=torch.float64) -> "Force":
-        raise NotImplementedError
+        """The exact-kinematics force at ``params`` for ``kinematics`` (a ``NonlinearBonds``)."""
 
 
-class Force:
+class Force(ABC):
     """A law's exact-kinematics force at one params (seed 002 eqs 2-3): ``force(u, intact,
     components)``, ``strain_energy(u, intact)`` and ``energy(u, intact, load, eps)``;
     ``kin`` is the ``nonlinear.NonlinearBonds`` of the material."""
@@ -210,8 +216,11 @@ class Force:
             V = V - (torch.as_tensor(load) * u).sum()
         return V + 0.5 * eps * (u * u).sum()
 
+    @abstractmethod
     def force(self, u, intact=None, components=None) -> torch.Tensor:
-        raise NotImplementedError
+        """-dV_strain/du (N, dim) at intact fractions ``intact`` (``components``: those of
+        ``NonlinearBonds.components(u)``, when known)."""
 
+    @abstractmethod
     def strain_energy(self, u, intact=None) -> torch.Tensor:
-        raise NotImplementedError
+        """The strain energy at u and ``intact``."""

@@ -142,3 +142,15 @@ def test_nonlinear_energy_and_force_are_consistent(plate, law, bulk, tol):
     ts = [1e-1, 5e-2, 2.5e-2]
     rem = [abs(float(force.energy(u + t * v, mu) - force.energy(u, mu)) + t * f_v) for t in ts]
     np.testing.assert_allclose(np.diff(np.log(rem)) / np.diff(np.log(ts)), 2.0, atol=0.1)
+
+
+@pytest.mark.parametrize("law,bulk,tol", LAWS)
+def test_the_horizon_is_an_ordinary_parameter(plate, law, bulk, tol):
+    """delta is one of ``param_names``; params without it are refused, naming the fix, by the
+    linear, damaged and nonlinear forms alike."""
+    p, bonds, mu = plate
+    mat = law(p, bonds)
+    assert mat.param_names[-1] == "delta"
+    for evaluate in (mat.stiffness, lambda q: mat.terms(q, mu), NonlinearBonds(mat).at):
+        with pytest.raises(ValueError, match=r"pass params\['delta'\]"):
+            evaluate({"K": K0, "G": G0})
