@@ -29,8 +29,7 @@ def crossing(body, x=10.0):
 
 
 def elastic(mat, params, bcs):
-    return bp.Scene(mat, bcs, [bp.Load(mat.particles.layer("right", H), (0.0, 0.0))]).solve(
-        dict(params, delta=DELTA))
+    return bp.Scene(mat, bcs, [bp.Load(mat.particles.layer("right", H), (0.0, 0.0))]).solve(params)
 
 
 @pytest.mark.parametrize("cls", [bp.BondBased, bp.LPS])

@@ -78,7 +78,7 @@ def test_isolated_particle_needs_the_confinement_term():
     the rest differs from the eps = 0 solution by at most eps / lambda_min (first-order
     perturbation: u_eps - u_0 = -eps A_eps^-1 u_0), with slope 1 in eps."""
     mat, params, c, load, intact, k = st.isolated_body()
-    F0 = bp.solvers.linear_elastic(mat, dict(params, delta=3.0), load, eps=0.0, constraints=c, intact=intact)
+    F0 = bp.solvers.linear_elastic(mat, params, load, eps=0.0, constraints=c, intact=intact)
     with pytest.raises(bp.NotPositiveDefiniteError, match=rf"particle {k}\).*eps > 0"):
         F0.equilibrium()
     res = st.isolated(quick=True)
@@ -96,8 +96,8 @@ def test_isolated_particle_leaves_the_nonlinear_lps_force_finite_in_float32():
     mat, params, _, _, intact, k = st.isolated_body()
     kin = NonlinearBonds(mat)
     u = 1e-3 * torch.randn(mat.particles.n, 2, generator=torch.Generator().manual_seed(0))
-    f64 = kin.at(dict(params, delta=3.0)).force(u, intact)
-    f32 = kin.at(dict(params, delta=3.0), torch.float32).force(u.float(), intact)
+    f64 = kin.at(params).force(u, intact)
+    f32 = kin.at(params, torch.float32).force(u.float(), intact)
     assert torch.isfinite(f32).all() and float(f32[k].abs().max()) == 0.0
     assert float((f32.double() - f64).norm() / f64.norm()) < 50 * st.EPS32
 
