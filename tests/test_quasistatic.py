@@ -32,7 +32,7 @@ def elastic(mat, params, bcs):
     return bp.Scene(mat, bcs, [bp.Load(mat.particles.layer("right", H), (0.0, 0.0))]).solve(params)
 
 
-@pytest.mark.parametrize("cls", [bp.BondBased, bp.LPS])
+@pytest.mark.parametrize("cls", [bp.BondBased, bp.LPS, bp.ConicalBondBased])
 def test_small_strain_response_is_the_linear_solve(cls):
     """Before any bond breaks u(lambda) = lambda u_lin + O(lambda^2): at strain ~1e-7 the two
     agree to 1e-8, and the relative deviation grows in proportion to lambda (slope 1)."""
@@ -46,7 +46,7 @@ def test_small_strain_response_is_the_linear_solve(cls):
     assert 10 * 0.9 < dev[2] / dev[1] < 10 * 1.1, dev
 
 
-@pytest.mark.parametrize("cls", [bp.BondBased, bp.LPS])
+@pytest.mark.parametrize("cls", [bp.BondBased, bp.LPS, bp.ConicalBondBased])
 def test_bar_breaks_at_the_predicted_load_and_then_carries_nothing(cls):
     """A weak section (s0 halved across x = 10): the first bond fails at the first load step
     reaching lambda* = min_b s0_b / s_b(u_lin) (1 % slack for the O(strain) nonlinearity); the
