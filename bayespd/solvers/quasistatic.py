@@ -8,16 +8,17 @@ bond kinematics of ``bayespd.nonlinear`` at the current intact fractions mu:
 
     r(u) = f_int(u; mu) + lambda p - eps u = 0   on the free dofs.
 
-Solver: Newton, u <- u + (T + eps I)^-1 r. Bond-based: T is the exact Hessian of the bond
-energy at u, k mu [n n^T + (e/r) (I - n n^T)] per bond (n = y/|y|), with the geometric part
-e/r kept only in tension (e > 0), so T is positive semi-definite and the step a descent
-direction; this keeps a particle or fragment that hangs on its last bonds stable (the
-linearised stiffness gives it no transverse stiffness, and a Newton iteration with it stalls
-or diverges there). T is refactorised only when the iteration slows down (``equilibrium``).
-LPS: T is the linearised stiffness of the damaged body (broken bonds removed; the Hessian at
-u = 0), factorised once per damage state: modified Newton, contracting the error by
-O(max stretch) per iteration away from hanging pieces. A mechanism that is still attached
-(T singular) gets a small diagonal shift (``LoadedBody.tangent``).
+Solver: Newton, u <- u + (T + eps I)^-1 r. Bond-based (a ``pairwise`` law, ``materials.base``):
+T is the exact Hessian of the bond energy at u, k mu [n n^T + (e/r) (I - n n^T)] per bond (n =
+y/|y|), with the geometric part e/r kept only in tension (e > 0), so T is positive
+semi-definite and the step a descent direction; this keeps a particle or fragment that hangs on
+its last bonds stable (the linearised stiffness gives it no transverse stiffness, and a Newton
+iteration with it stalls or diverges there). T is refactorised only when the iteration slows
+down (``equilibrium``). LPS (any other law): T is the linearised stiffness of the damaged body
+(``material.terms(params, intact)``: broken bonds removed; the Hessian at u = 0), factorised
+once per damage state: modified Newton, contracting the error by O(max stretch) per iteration
+away from hanging pieces. A mechanism that is still attached (T singular) gets a small diagonal
+shift (``LoadedBody.tangent``).
 
 Detached pieces: with eps = 0, a piece of the intact-bond graph that holds no Dirichlet
 particle (an isolated particle, a fragment) has its dofs dropped from the solve: it keeps the
