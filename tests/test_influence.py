@@ -7,7 +7,7 @@ from scipy.integrate import quad
 
 import bayespd as bp
 from bayespd.influence import Bernstein, Conical, Constant, Gaussian
-from tests.test_materials import classical_energy_density, interior
+from tests.materials.test_lps import classical_energy_density, interior
 
 E, NU = 4000.0, 0.3
 D = torch.tensor([1.0, 2.0, 0.5, 0.3])
