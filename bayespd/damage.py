@@ -125,7 +125,7 @@ class DamageODE:
 
 def damage_index(particles, bonds, intact, weight=None) -> torch.Tensor:
     """phi_i = 1 - sum_j w mu V_j / sum_j w V_j over particle i's bonds (w = 1 when ``weight``
-    is None, else e.g. ``material.bond_weight(params, delta)``); differentiable in mu."""
+    is None, else e.g. ``material.bond_weight(params)``); differentiable in mu."""
     return DamageIndex(particles, bonds, weight)(intact)
 
 

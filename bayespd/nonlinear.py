@@ -5,18 +5,10 @@ the stretch s = e / |xi| (seed 002 eq 1-2; seed 004 eq 3.11). Each bond carries 
 fraction mu in [0, 1] (from ``bayespd.damage``; 1 when no damage law is present), held fixed
 while the force is taken: the force is -dV/du at the current damage state.
 
-Bond-based PMB (seed 002 eq 2): bond energy 1/2 c_b w_b mu_b s^2 |xi| V_i V_j with the
-calibration and weights of the linearised ``BondBased`` (c_b the mean micromodulus of the two
-ends, w_b = omega * beta from ``bond_weight``, times the surface factor when switched on).
-
-LPS: the energy of the linear LPS (``materials`` docstring) with the exact extension and the
-intact weights mu w: m_i = sum_j mu w |xi|^2 V_j, theta_i = (d / m_i) sum_j mu w |xi| e V_j,
-
-    V_i W_i = V_i [(kappa_i/2 - c_d G_i/(2 d^2)) theta_i^2 + (c_d G_i/(2 m_i)) sum_j mu w e^2 V_j].
-
-m_i is floored at ``M_FLOOR`` times its undamaged value: a fully broken particle (theta = 0,
-no bond energy) then divides 0 by a positive number; above the floor nothing changes, below it
-the particle's energy fades continuously to zero with its last bonds.
+The material owns its law (``bayespd.materials``): ``at(params)`` asks it for its force object
+(``material.nonlinear``), whose ``force``/``energy`` are the per-step calls; e.g. PMB's in
+``materials/pmb.py``, LPS's (with the floored weighted volume of a broken particle) in
+``materials/lps.py``.
 
 Total potential energy (seed 002 eq 3): V(u) = sum of bond energies - p . u + (eps/2) u . u.
 For small u both forces equal the linearised -K u up to O(|u|^2).
@@ -46,24 +38,20 @@ import scipy.sparse as sp
 import torch
 
 from bayespd import bond_loops
-from bayespd.materials import _C_DEV, LPS, BondBased
-
-M_FLOOR = 1e-9
 
 
 class NonlinearBonds:
-    """Exact bond kinematics of a ``BondBased`` or ``LPS`` material (index tensors built once).
+    """Exact bond kinematics of a material (``bayespd.materials``; index tensors built once).
 
-    ``at(params, delta)`` evaluates the per-bond coefficients once per parameter value and
-    returns an object whose ``force(u, intact)`` / ``energy(u, intact, load, eps)`` are the
-    cheap per-step calls; ``force(u, params, delta, intact)`` does both at once.
+    ``at(params)`` evaluates the material's per-bond coefficients once per parameter value
+    (``params`` holds "delta") and returns its force object, whose ``force(u, intact)`` /
+    ``energy(u, intact, load, eps)`` are the cheap per-step calls; ``force(u, params, intact)``
+    does both at once.
     """
 
     def __init__(self, material):
-        if not isinstance(material, (BondBased, LPS)):
-            raise TypeError("NonlinearBonds needs a BondBased or LPS material")
         self.material = material
-        self.i, self.j = material._i, material._j
+        self.i, self.j = material.i, material.j
         self.xi = torch.as_tensor(material.bonds.xi)
         self.length = material.length
         self.n, self.dim = material.particles.n, material.dim
@@ -78,7 +66,7 @@ class NonlinearBonds:
         return self._geometry[dtype]
 
     @cached_property
-    def _ends(self) -> tuple[np.ndarray, np.ndarray]:
+    def ends(self) -> tuple[np.ndarray, np.ndarray]:
         """(i, j) as int32 numpy arrays, for ``bond_loops``."""
         return self.i.numpy().astype(np.int32), self.j.numpy().astype(np.int32)
 
@@ -115,8 +103,9 @@ class NonlinearBonds:
 
     def shared_components(self, u: torch.Tensor):
         """``components(u)`` to hand to both ``stretch`` and ``force`` at one u, or None where
-        ``bond_loops`` evaluates each from u itself, at less cost (PMB on the CPU, no gradient)."""
-        compiled = isinstance(self.material, BondBased) and bond_loops.usable(u)
+        ``bond_loops`` evaluates each from u itself, at less cost (a ``pairwise`` law such as
+        PMB on the CPU, no gradient)."""
+        compiled = self.material.pairwise and bond_loops.usable(u)
         return None if compiled else self.components(u)
 
     def kinematics(self, u: torch.Tensor):
@@ -133,23 +122,22 @@ class NonlinearBonds:
         """s = (|xi + eta| - |xi|) / |xi| per bond for u of shape (N, dim) (``components``:
         those of u, when known)."""
         if components is None and bond_loops.usable(u):
-            return bond_loops.stretch(u, self._ends, *self.geometry(u.dtype))
+            return bond_loops.stretch(u, self.ends, *self.geometry(u.dtype))
         return (components or self.components(u))[2] / self.geometry(u.dtype)[1]
 
-    def at(self, params: dict, delta, dtype=torch.float64):
-        """The material's per-bond coefficients at (params, delta) (differentiable), in
-        ``dtype`` (float32: for large explicit dynamics only; the displacement must match)."""
+    def at(self, params: dict, dtype=torch.float64):
+        """The material's force object (``material.nonlinear``) at ``params`` (differentiable),
+        in ``dtype`` (float32: for large explicit dynamics only; the displacement must match)."""
         self.geometry(dtype)
-        cls = LPSForce if isinstance(self.material, LPS) else PMBForce
-        return cls(self, params, delta, dtype)
+        return self.material.nonlinear(self, params, dtype)
 
-    def force(self, u, params: dict, delta, intact=None) -> torch.Tensor:
+    def force(self, u, params: dict, intact=None) -> torch.Tensor:
         """Internal force -dV_strain/du, shape (N, dim)."""
-        return self.at(params, delta, u.dtype).force(u, intact)
+        return self.at(params, u.dtype).force(u, intact)
 
-    def energy(self, u, params: dict, delta, intact=None, load=None, eps: float = 0.0):
+    def energy(self, u, params: dict, intact=None, load=None, eps: float = 0.0):
         """Total potential energy V(u) of seed 002 eq 3."""
-        return self.at(params, delta, u.dtype).energy(u, intact, load, eps)
+        return self.at(params, u.dtype).energy(u, intact, load, eps)
 
 
 def _component_sum(p: torch.Tensor) -> torch.Tensor:
@@ -187,109 +175,3 @@ def _torch_csr(A: sp.csr_matrix, dtype) -> torch.Tensor:
         warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta")
         return torch.sparse_csr_tensor(torch.from_numpy(A.indptr), torch.from_numpy(A.indices),
                                        torch.from_numpy(A.data).to(dtype), A.shape, check_invariants=True)
-
-
-class _Force:
-    """Per-bond coefficients at one (params, delta): ``force(u, intact)``,
-    ``strain_energy(u, intact)`` and ``energy(u, intact, load, eps)``."""
-
-    def __init__(self, kin: NonlinearBonds, params: dict, delta, dtype=torch.float64):
-        self.kin, self.dtype = kin, dtype
-        self.moduli = kin.material._moduli(params)
-        self.factor = kin.material._bond_correction(self.moduli, params, delta)
-
-    def _intact(self, u, intact):
-        """The intact fractions in this dtype; refuses a u of another dtype (the coefficients
-        were converted once, in ``NonlinearBonds.at``)."""
-        if u.dtype != self.dtype:
-            raise ValueError(f"u is {u.dtype} but these coefficients are {self.dtype}: "
-                             f"use NonlinearBonds.at(params, delta, dtype={u.dtype})")
-        return None if intact is None else torch.as_tensor(intact).to(self.dtype)
-
-    def _scatter(self, y, t_over_r, like):
-        """Bond force t y/|y| pulls i towards j and j towards i: f = -D^T (t y / |y|) (negated
-        after the sum, on the particles' values: the same bits, one pass over the bonds less)."""
-        fb = (y * t_over_r).reshape(-1)
-        D, DT = self.kin.incidence(fb)
-        return -product(DT, D, fb).view(like.shape)
-
-    def energy(self, u, intact=None, load=None, eps: float = 0.0):
-        """Strain energy - p . u + (eps/2) u . u (seed 002 eq 3)."""
-        V = self.strain_energy(u, intact)
-        if load is not None:
-            V = V - (torch.as_tensor(load) * u).sum()
-        return V + 0.5 * eps * (u * u).sum()
-
-
-class PMBForce(_Force):
-    """Bond-based PMB: t_b = k_b mu e_b with k_b = c_b w_b V_i V_j / |xi| (times the factor)."""
-
-    def __init__(self, kin, params, delta, dtype=torch.float64):
-        super().__init__(kin, params, delta, dtype)
-        self.k = (self.factor * kin.material._bond_stiffness(self.moduli, params, delta)).to(dtype)
-
-    def force(self, u, intact=None, components=None):
-        intact = self._intact(u, intact)
-        if components is None and bond_loops.usable(u, self.k, intact):
-            return bond_loops.pmb_force(u, self.kin._ends, *self.kin.geometry(u.dtype), self.k, intact)
-        y, r, e = components or self.kin.components(u)
-        k = self.k if intact is None else self.k * intact
-        return self._scatter(y, k * e / r, u)
-
-    def strain_energy(self, u, intact=None):
-        intact = self._intact(u, intact)
-        e = self.kin.components(u)[2]
-        k = self.k if intact is None else self.k * intact
-        return 0.5 * (k * e * e).sum()
-
-
-class LPSForce(_Force):
-    """LPS: dV/de_b = mu w V_i V_j [|xi| (a_i + a_j) + F_b e (b_i + b_j)] with
-    a = 2 d A theta / m, b = c_d G / m, A = kappa/2 - c_d G/(2 d^2), F_b the surface factor."""
-
-    def __init__(self, kin, params, delta, dtype=torch.float64):
-        super().__init__(kin, params, delta, dtype)
-        mat, d, L = kin.material, kin.dim, kin.length
-        K, G = self.moduli["K"], self.moduli["G"]
-        w = mat.bond_weight(params, delta)
-        Vi, Vj = mat.volume[kin.i], mat.volume[kin.j]
-        coef = {"A": 0.5 * (mat.kappa(K, G) - _C_DEV[d] * G / d**2), "cG": _C_DEV[d] * G,
-                "m0": mat.weighted_volume(w), "volume": mat.volume,
-                "wVVL": w * Vi * Vj * L, "wVVF": w * Vi * Vj * self.factor,
-                "wLVi": w * L * Vi, "wLVj": w * L * Vj}
-        for name, value in coef.items():
-            setattr(self, name, value.to(dtype))
-
-    def _sum(self, at_i, at_j):
-        """Per-particle sum of per-bond values at_i (to end i) and at_j (to end j)."""
-        z = torch.zeros(self.kin.n, dtype=at_i.dtype)
-        return z.index_add_(0, self.kin.i, at_i).index_add_(0, self.kin.j, at_j)
-
-    def _state(self, u, intact, components=None):
-        """(y, |y|, mu e, e, m, theta, mu); mu e stands for e when there is no damage."""
-        kin = self.kin
-        intact = self._intact(u, intact)
-        y, r, e = components or kin.components(u)
-        if intact is None:
-            me, m = e, self.m0
-        else:
-            me = e * intact
-            wL2 = intact * kin.geometry(self.dtype)[1]
-            m = torch.maximum(self._sum(wL2 * self.wLVj, wL2 * self.wLVi), M_FLOOR * self.m0)
-        theta = kin.dim / m * self._sum(self.wLVj * me, self.wLVi * me)
-        return y, r, me, e, m, theta, intact
-
-    def force(self, u, intact=None, components=None):
-        kin = self.kin
-        y, r, me, e, m, theta, intact = self._state(u, intact, components)
-        ab = torch.stack([2 * kin.dim * self.A * theta / m, self.cG / m], dim=1)
-        ab = ab.index_select(0, kin.i) + ab.index_select(0, kin.j)
-        bond = self.wVVL * ab[:, 0] if intact is None else self.wVVL * intact * ab[:, 0]
-        t = torch.addcmul(bond, self.wVVF * me, ab[:, 1])
-        return self._scatter(y, t / r, u)
-
-    def strain_energy(self, u, intact=None):
-        y, r, me, e, m, theta, _ = self._state(u, intact)
-        b = self.cG / m
-        bond = 0.5 * self.wVVF * me * e * (b[self.kin.i] + b[self.kin.j])
-        return (self.volume * self.A * theta**2).sum() + bond.sum()

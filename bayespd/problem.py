@@ -18,8 +18,8 @@ from bayespd.linalg.sparse import ValuesForm, solve_form
 class Scene:
     """A static linear-elastic peridynamic problem built only from the parts it declares.
 
-    ``params`` holds the material moduli (``material.param_names``, e.g. K and G), the
-    horizon ``delta`` and an optional ``load`` factor scaling every load. Each may be a
+    ``params`` holds the material's parameters (``material.param_names``, e.g. K, G and the
+    horizon ``delta``) and an optional ``load`` factor scaling every load. Each may be a
     tensor that requires grad: the gradient costs one extra solve with the same factor.
 
     ``eps`` >= 0 is the confinement of seed 002 eq 3, (eps/2) sum_i u_i.u_i: the operator on
@@ -53,14 +53,14 @@ class Scene:
         self.constraints = Constraints(p, material.pattern if direct else None, dirichlet)
         # PCG: K is never assembled; the preconditioner keeps the bonds with
         # |xi| <= precondition_radius * h (None: all bonds)
-        self._assembly = None if direct else Assembly(material._grams(), self.constraints.free_mask)
+        self._assembly = None if direct else Assembly(material.grams(), self.constraints.free_mask)
         self._precondition_rows = None
         if not direct and precondition_radius is not None:
             short = material.bonds.length <= precondition_radius * p.h * (1 + 1e-9)
-            self._precondition_rows = {material._grams()[0]: short}
+            self._precondition_rows = {material.grams()[0]: short}
         _refuse_floating_pieces(material.bonds, self.constraints.fixed_particles)
         self.force = sum(load.nodal(p) for load in loads)
-        self.param_names = (*material.param_names, "delta")
+        self.param_names = material.param_names
 
     def _params(self, params: dict) -> dict:
         missing = set(self.param_names) - set(params)
@@ -76,7 +76,7 @@ class Scene:
         q = dict(zip(self.param_names, theta))
         c = self.constraints
         if u_free.dim() == 1:
-            form = self.material.form(q, q["delta"], c.embed(v_free), c.embed(u_free))
+            form = self.material.form(q, c.embed(v_free), c.embed(u_free))
         elif self.solver == "direct":  # one differentiable assembly of K_ff for all columns
             form = ValuesForm(c.pattern)(v_free, u_free, self.stiffness_values(q))
         else:
@@ -86,7 +86,7 @@ class Scene:
     def stiffness_values(self, params: dict) -> torch.Tensor:
         """Values of A = K_ff + eps I on ``constraints.pattern``, differentiable (direct solver)."""
         p = self._params(params)
-        values = self.constraints.free_values(self.material.stiffness(p, p["delta"]))
+        values = self.constraints.free_values(self.material.stiffness(p))
         return values + self.eps * self._diagonal if self.eps else values
 
     @cached_property
@@ -101,9 +101,9 @@ class Scene:
         c, m = self.constraints, self.material
         with torch.no_grad():
             if self.solver == "direct":
-                values = c.free_values(m.numeric_stiffness(p, p["delta"]))
+                values = c.free_values(m.numeric_stiffness(p))
                 return c.pattern.factorize(values + self.eps * self._diagonal if self.eps else values)
-            return self._assembly.factorize(m._terms(p, p["delta"]), "pcg", rtol=self.rtol,
+            return self._assembly.factorize(m.terms(p), "pcg", rtol=self.rtol,
                                             precondition_rows=self._precondition_rows)
 
     def factor(self, params: dict):
@@ -121,7 +121,7 @@ class Scene:
             v = torch.zeros_like(c.prescribed, requires_grad=True)
             differentiable = torch.is_grad_enabled()  # read before enable_grad overrides it
             with torch.enable_grad():
-                Ku = torch.autograd.grad(m.form(p, p["delta"], v, c.prescribed), v,
+                Ku = torch.autograd.grad(m.form(p, v, c.prescribed), v,
                                          create_graph=differentiable)[0]
             rhs = rhs - c.free(Ku)
         return rhs

@@ -13,23 +13,23 @@ combines them on an ellipse (ellipsoid in 3D):
 
     G_b = (sum_a (n_a / gbar_a)^2)^(-1/2).
 
-The factors depend on delta and the moduli and are differentiable in both.
+The factors depend on the moduli and params["delta"] and are differentiable in both.
 """
 from __future__ import annotations
 
 import torch
 
 
-def bond_factors(material, moduli: dict, params: dict, delta) -> torch.Tensor:
+def bond_factors(material, moduli: dict, params: dict) -> torch.Tensor:
     """Correction factor G_b per bond (see the module docstring)."""
     x = torch.as_tensor(material.particles.x)
-    i, j = material._i, material._j
+    i, j = material.i, material.j
     inverse_square = 0.0
     for a in range(material.dim):
         eps = torch.zeros(material.dim, material.dim)
         eps[a, a] = 1.0
-        fixed, bond = material._energy_parts(moduli, params, delta, x @ eps.T)
-        g = (sum(material._bulk_energy_parts(moduli, params, delta, a)) - fixed) / bond
+        fixed, bond = material.energy_parts(moduli, params, x @ eps.T)
+        g = (sum(material.bulk_energy_parts(moduli, params, a)) - fixed) / bond
         if not bool(torch.all(torch.isfinite(g) & (g > 0))):
             raise ValueError("surface correction failed: a particle's family stores no energy "
                              f"under uniaxial strain along axis {a} (an isolated particle or a "

@@ -47,11 +47,11 @@ def main():
         kin = NonlinearBonds(mat)
         M = lumped_mass(p, 1.0)
         if dt is None:  # same h, m and material at every size: the same stable step
-            dt = 0.5 * critical_time_step(linear_elastic(mat, {"K": 1.0}, args.m).matrix, M)
+            dt = 0.5 * critical_time_step(linear_elastic(mat, {"K": 1.0, "delta": args.m}).matrix, M)
         u0 = torch.zeros(p.n, args.dim)
         u0[:, 0] = 1e-4 * torch.as_tensor(p.x[:, 1])  # a shear: every bond loaded
         for dtype in (torch.float64, torch.float32):
-            coef = kin.at({"K": 1.0}, args.m, dtype)
+            coef = kin.at({"K": 1.0, "delta": args.m}, dtype)
             u = u0.to(dtype)
 
             def force(v, coef=coef, shape=u0.shape):
@@ -65,7 +65,7 @@ def main():
 
     side = round(math.sqrt(args.langevin_size))
     p = bp.grid_2d(float(side), float(side), 1.0)
-    F = linear_elastic(bp.BondBased(p, bp.find_bonds(p, args.m)), {"K": 1.0}, args.m, eps=1e-3)
+    F = linear_elastic(bp.BondBased(p, bp.find_bonds(p, args.m)), {"K": 1.0, "delta": args.m}, eps=1e-3)
     L = Langevin(F, white_noise(1.0, F.n), 1.0, operator=F.matrix)
     dt_em = 0.5 * L.explicit_limit()
     u = torch.zeros(F.n)

@@ -54,9 +54,8 @@ def run_one(n: int, m: float, material: str, solver: str, threads: int, scene: b
     cls = bp.LPS if material == "lps" else bp.BondBased
     mat = cls(p, bonds, plane="stress")
     clamp = np.repeat(p.layer("left", m * h), 2)
-    params = {"K": torch.tensor(3333.0), "G": torch.tensor(1538.0)}
-    delta = torch.tensor(m * h)
-    grams = mat._grams()
+    params = {"K": torch.tensor(3333.0), "G": torch.tensor(1538.0), "delta": torch.tensor(m * h)}
+    grams = mat.grams()
     direct = solver in ("cholmod", "splu")
     asm = Assembly(grams, ~clamp, pattern=mat.pattern if direct else None)
     if direct:
@@ -66,7 +65,7 @@ def run_one(n: int, m: float, material: str, solver: str, threads: int, scene: b
     out["dofs"] = int((~clamp).sum())
 
     t0 = time.perf_counter()
-    terms = mat._terms(params, delta)
+    terms = mat.terms(params)
     f = np.zeros((p.n, 2))
     f[p.layer("right", h), 0] = 1.0
     f = f.reshape(-1)[~clamp]

@@ -48,12 +48,12 @@ def main():
         bonds = bp.find_bonds(p, m)
         for material in args.materials:
             mat = (bp.LPS if material == "lps" else bp.BondBased)(p, bonds, plane="stress")
-            terms = mat._terms({"K": torch.tensor(3333.0), "G": torch.tensor(1538.0)}, torch.tensor(m))
+            terms = mat.terms({"K": torch.tensor(3333.0), "G": torch.tensor(1538.0), "delta": torch.tensor(m)})
             num = [(g, d.numpy(), w.numpy()) for g, d, w in terms]
             u = torch.randn(2 * p.n, dtype=torch.float64)
             un = u.numpy()
-            ops = Assembly(mat._grams()).operator(num)
-            values = mat.numeric_stiffness({"K": 3333.0, "G": 1538.0}, m)
+            ops = Assembly(mat.grams()).operator(num)
+            values = mat.numeric_stiffness({"K": 3333.0, "G": 1538.0, "delta": m})
             K = mat.pattern.matrix(values)
             Kt = torch.sparse_csr_tensor(torch.as_tensor(K.indptr.astype(np.int64)),
                                          torch.as_tensor(K.indices.astype(np.int64)),

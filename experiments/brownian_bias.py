@@ -173,7 +173,7 @@ def run_trajectories(quick, seed):
             def model_noise(t, noise=noise):
                 return NoiseCovariance.karhunen_loeve(scene.particles.x, t["sigma_c"], t["length"], noise["rank"],
                                                       noise["nugget"], c.free_dofs, scene.particles.dim)
-        force = linear_elastic(scene.material, material(TRUTH), TRUTH["delta"], load=scene.force, eps=EPS, constraints=c)
+        force = linear_elastic(scene.material, dict(material(TRUTH), delta=TRUTH["delta"]), load=scene.force, eps=EPS, constraints=c)
         langevin = Langevin(force, cov, TRUTH["eta"], operator=force.matrix)
         dt = 0.3 * langevin.explicit_limit()
         # from equilibrium at step dt / 4, kept every 4th step: the data's chain is not the model's

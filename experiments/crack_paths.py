@@ -42,7 +42,7 @@ def plate() -> LoadedBody:
     p = bp.grid_2d(SIDE, SIDE, H)
     bonds = bp.precrack(p, bp.find_bonds(p, DELTA), [[0.0, Y_NOTCH], [SIDE / 2, Y_NOTCH]])
     bcs = [bp.Dirichlet.layer(p, "bottom", DELTA), bp.Dirichlet.layer(p, "top", DELTA, (0.0, 1.0))]
-    return LoadedBody(bp.BondBased(p, bonds), {"K": E}, DELTA, bcs)
+    return LoadedBody(bp.BondBased(p, bonds), {"K": E, "delta": DELTA}, bcs)
 
 
 def ramp(body: LoadedBody, steps: int) -> np.ndarray:

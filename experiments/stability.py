@@ -51,14 +51,14 @@ STRAIN = torch.tensor([[1e-3, 2e-4], [2e-4, -5e-4]])  # volumetric + deviatoric
 
 # --- shared pieces ----------------------------------------------------------------------------
 
-def dirichlet_solve(mat, params, delta, fixed, u_fixed, body_force=None):
+def dirichlet_solve(mat, params, fixed, u_fixed, body_force=None):
     """Direct solve of K_ff u_f = V b_f - K_fc u_c (fixed particles at u_fixed, (N, dim)).
     Returns (u (N, dim), A = K_ff (scipy), rhs, factor, seconds for assembly + factorisation
     + solve, the rounding amplification of the right-hand side (see ``error_bound``))."""
     t0 = time.perf_counter()
     d = mat.dim
     fixed_dof = np.repeat(fixed, d)
-    values = mat.numeric_stiffness(params, delta)
+    values = mat.numeric_stiffness(params)
     K = mat.pattern.matrix(values).tocsr()
     sub, entries = mat.pattern.restrict(~fixed_dof)
     free_values = values[torch.as_tensor(entries)]
@@ -121,7 +121,7 @@ def patch_test(cls, m: float, params: dict, plane: str = "stress", interior: int
     setup = time.perf_counter() - t0
     exact = (torch.as_tensor(p.x) - side / 2) @ STRAIN.T
     fixed = ~p.box(p.lower() + layer, p.upper() - layer)
-    u, A, _, _, wall, cancellation = dirichlet_solve(mat, params, delta, fixed, exact)
+    u, A, _, _, wall, cancellation = dirichlet_solve(mat, dict(params, delta=delta), fixed, exact)
     free = ~fixed
     cond = condition_number(A)
     err = rel(u[free].numpy(), exact[free].numpy())
@@ -156,7 +156,7 @@ def incompressible(quick: bool) -> dict:
             refused[str(nu)] = str(e)
     p = bp.grid_2d(8, 8, 1.0)
     try:
-        bp.LPS(p, bp.find_bonds(p, 3.0), plane="strain").numeric_stiffness({"K": float("inf"), "G": 1.0}, 3.0)
+        bp.LPS(p, bp.find_bonds(p, 3.0), plane="strain").numeric_stiffness({"K": float("inf"), "G": 1.0, "delta": 3.0})
         refused["K=inf"] = None
     except NonFiniteParameterError as e:
         refused["K=inf"] = str(e)
@@ -175,16 +175,16 @@ def contrast_bar(contrast: float, cls=bp.LPS, length: float = 40.0, width: float
     mat = cls(p, bp.find_bonds(p, delta))
     stiff = torch.as_tensor(p.x[:, 0] > length / 2)
     K = torch.where(stiff, contrast, 1.0)
-    params = {"K": K, "G": 0.6 * K} if cls is bp.LPS else {"K": K}
+    params = {"K": K, "G": 0.6 * K, "delta": delta} if cls is bp.LPS else {"K": K, "delta": delta}
     fixed = p.layer("left", delta)
     load = bp.Load(p.layer("right", 1.0), (1.0, 0.0)).nodal(p) / torch.as_tensor(p.volume)[:, None]
-    return mat, params, delta, fixed, load
+    return mat, params, fixed, load
 
 
 def contrast_case(contrast: float, cls=bp.LPS, **kw) -> dict:
-    mat, params, delta, fixed, load = contrast_bar(contrast, cls, **kw)
+    mat, params, fixed, load = contrast_bar(contrast, cls, **kw)
     try:
-        u, A, rhs, factor, wall, _ = dirichlet_solve(mat, params, delta, fixed, torch.zeros(mat.particles.n, 2), load)
+        u, A, rhs, factor, wall, _ = dirichlet_solve(mat, params, fixed, torch.zeros(mat.particles.n, 2), load)
     except NotPositiveDefiniteError as e:
         return {"contrast": contrast, "material": cls.__name__, "stable": False, "refused": str(e)}
     free = np.repeat(~fixed, 2)
@@ -233,7 +233,7 @@ def quadratic_error(m: float, interior: int = 10) -> dict:
     mat = bp.BondBased(p, bp.find_bonds(p, float(m)))
     exact, b = navier_quadratic(p, side, 1e-3 / side)
     fixed = ~p.box(p.lower() + layer, p.upper() - layer)
-    u, *_ = dirichlet_solve(mat, {"K": 1.0}, float(m), fixed, exact, b)
+    u, *_ = dirichlet_solve(mat, {"K": 1.0, "delta": float(m)}, fixed, exact, b)
     free = ~fixed
     return {"error": rel(u[free].numpy(), exact[free].numpy()), "wall_time_s": time.perf_counter() - t0}
 
@@ -267,7 +267,7 @@ def isolated_body(cls=bp.LPS):
     load, intact, k)."""
     p = bp.grid_2d(12.0, 6.0, 1.0)
     mat = cls(p, bp.find_bonds(p, 3.0))
-    params = {"K": 1.0, "G": 0.6} if cls is bp.LPS else {"K": 1.0}
+    params = {"K": 1.0, "G": 0.6, "delta": 3.0} if cls is bp.LPS else {"K": 1.0, "delta": 3.0}
     scene = bp.Scene(mat, [bp.Dirichlet.layer(p, "left", 3.0)], [bp.Load(p.layer("right", 1.0), (0.5, 0.2))])
     k = int(np.argmin(((p.x - [7.5, 3.5]) ** 2).sum(1)))
     intact = torch.as_tensor(~((mat.bonds.i == k) | (mat.bonds.j == k)), dtype=torch.float64)
@@ -277,12 +277,12 @@ def isolated_body(cls=bp.LPS):
 def isolated(quick: bool) -> dict:
     mat, params, c, load, intact, k = isolated_body()
     try:
-        linear_elastic(mat, params, 3.0, load, eps=0.0, constraints=c, intact=intact).equilibrium()
+        linear_elastic(mat, params, load, eps=0.0, constraints=c, intact=intact).equilibrium()
         refusal = None
     except NotPositiveDefiniteError as e:
         refusal = str(e)
     # reference: the damaged body without particle k's dofs, eps = 0 (what quasistatic solves)
-    F0 = linear_elastic(mat, params, 3.0, load, eps=0.0, constraints=c, intact=intact)
+    F0 = linear_elastic(mat, params, load, eps=0.0, constraints=c, intact=intact)
     keep = np.ones(F0.n, dtype=bool)
     pos = np.searchsorted(c.free_dofs, [2 * k, 2 * k + 1])
     keep[pos] = False
@@ -291,7 +291,7 @@ def isolated(quick: bool) -> dict:
     rows = []
     for eps in (1e-2, 1e-4, 1e-6, 1e-8):
         t0 = time.perf_counter()
-        u = linear_elastic(mat, params, 3.0, load, eps=eps, constraints=c, intact=intact).equilibrium().numpy()
+        u = linear_elastic(mat, params, load, eps=eps, constraints=c, intact=intact).equilibrium().numpy()
         rows.append({"eps": eps, "eps_over_lambda_min": eps / lam_min, "error": rel(u[keep], ref),
                      "isolated_displacement": float(np.abs(u[pos]).max()),
                      "stable": bool(np.all(np.isfinite(u))), "wall_time_s": time.perf_counter() - t0})
@@ -313,12 +313,12 @@ def wave_plate(side: int, m: float = 3.0, amplitude: float = 1e-4):
     u0 = torch.zeros(p.n, 2)
     u0[:, 0] = torch.as_tensor(amplitude * 4 * np.exp(-r2 / 16))
     M = lumped_mass(p, 1.0)
-    dt = critical_time_step(linear_elastic(mat, {"K": 1.0}, m).matrix, M)
+    dt = critical_time_step(linear_elastic(mat, {"K": 1.0, "delta": m}).matrix, M)
     return kin, M, u0.reshape(-1), dt
 
 
 def verlet(kin, M, u0, dt, steps, dtype):
-    coef = kin.at({"K": 1.0}, kin.material.bonds.delta_max, dtype)
+    coef = kin.at({"K": 1.0, "delta": kin.material.bonds.delta_max}, dtype)
     n = kin.n
 
     def force(u):
@@ -340,8 +340,8 @@ def precision(quick: bool) -> dict:
     energy_gap = np.abs(t32.energy - t64.energy) / E0
     # the kernel at strain ~1e-4: cancellation-free extension vs |y| - |xi| in float32
     u = u0.view(-1, 2)
-    f64 = kin.at({"K": 1.0}, 3.0).force(u)
-    f32 = kin.at({"K": 1.0}, 3.0, torch.float32).force(u.float())
+    f64 = kin.at({"K": 1.0, "delta": 3.0}).force(u)
+    f32 = kin.at({"K": 1.0, "delta": 3.0}, torch.float32).force(u.float())
     y, r, _ = kin.kinematics(u.float())
     xi, L = kin.geometry(torch.float32)
     naive = r - L
@@ -372,7 +372,7 @@ def precision(quick: bool) -> dict:
 def langevin_plate(eps: float = 0.05):
     """LPS plate 6 x 6, m = 2, no supports, confinement eps: A = K + eps I (72 dofs)."""
     p = bp.grid_2d(6.0, 6.0, 1.0)
-    return linear_elastic(bp.LPS(p, bp.find_bonds(p, 2.0)), {"K": 1.0, "G": 0.6}, 2.0, eps=eps)
+    return linear_elastic(bp.LPS(p, bp.find_bonds(p, 2.0)), {"K": 1.0, "G": 0.6, "delta": 2.0}, eps=eps)
 
 
 def mode_variance_ratios(U, F, eta):

@@ -75,7 +75,7 @@ def fracture(h: float, F: float):
     p, bonds = plate(h)
     material = bp.LPS(p, bonds, plane="strain")
     dirichlet, loads = regions(p)
-    body = LoadedBody(material, dict(MODULI, delta=DELTA), DELTA, dirichlet, loads)
+    body = LoadedBody(material, dict(MODULI, delta=DELTA), dirichlet, loads)
     steps = [F] if F <= ELASTIC_LIMIT else np.linspace(ELASTIC_LIMIT, F, RAMP)
     res = quasi_static(body, steps, CriticalStretch(S0))
     if res.separated:

@@ -28,7 +28,7 @@ def positive(name: str, value) -> float:
 def elastic_priors(scene, nominal: dict, noise_scale: float) -> dict:
     """Weakly informative priors on physical scales (moduli, horizon, observation noise)."""
     h, delta_max = scene.particles.h, scene.material.bonds.delta_max
-    names = scene.material.param_names
+    names = [k for k in scene.material.param_names if k != "delta"]  # delta: its own prior
     missing = set(names) - set(nominal)
     if missing:
         raise ValueError(f"nominal needs a value for every modulus {list(names)}; missing {sorted(missing)}")

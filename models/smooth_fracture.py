@@ -23,24 +23,24 @@ import numpy as np
 import torch
 
 from bayespd.boundary import Constraints
-from bayespd.materials import BondBased
 from bayespd.nonlinear import NonlinearBonds
 from bayespd.linalg.sparse import ConvergenceError
 
 
 class SmoothFracture:
-    """A ``BondBased`` material at (params, delta) under Dirichlet regions (their values are
+    """A bond-based (``pairwise``) material at ``params`` (with "delta") under Dirichlet regions (their values are
     those at load factor 1), with the smoothed damage law of width ``eta``."""
 
-    def __init__(self, material, params: dict, delta, dirichlet, eta: float):
-        if not isinstance(material, BondBased):
-            raise ValueError("SmoothFracture is bond-based (PMB): build the scene with bp.BondBased")
+    def __init__(self, material, params: dict, dirichlet, eta: float):
+        if not material.pairwise:
+            raise ValueError("SmoothFracture is bond-based (a pairwise law): build the scene with "
+                             "bp.BondBased (or another pairwise law), not bp.LPS")
         if not float(eta) > 0:
             raise ValueError(f"the smoothing width eta must be positive, got {eta}")
         p = material.particles
         bonds = material.bonds
         with torch.no_grad():
-            self.k = NonlinearBonds(material).at(params, delta).k.detach()
+            self.k = NonlinearBonds(material).at(params).k.detach()
         n_hat = bonds.xi / bonds.length[:, None]
         B = np.zeros((bonds.n, p.n * p.dim))
         rows = np.arange(bonds.n)

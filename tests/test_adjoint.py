@@ -32,7 +32,7 @@ def test_values_solve_gradcheck_through_stiffness(small_scene):
     c = sc.constraints
 
     def fn(K, G, delta, load):
-        values = c.free_values(sc.material.stiffness({"K": K, "G": G}, delta))
+        values = c.free_values(sc.material.stiffness({"K": K, "G": G, "delta": delta}))
         return sparse.solve(c.pattern, values, c.free(sc.force) * load)
 
     assert torch.autograd.gradcheck(fn, leaves(), eps=1e-6, atol=1e-9, rtol=1e-6)
@@ -93,7 +93,7 @@ def test_hessian_vector_product_matches_finite_difference(small_scene):
 def test_backends_agree():
     sc = plate_scene(nx=16, ny=8)
     c = sc.constraints
-    values = c.free_values(sc.material.numeric_stiffness(BASE, BASE["delta"]))
+    values = c.free_values(sc.material.numeric_stiffness(BASE))
     rhs = c.free(sc.force).numpy()
     u_chol = c.pattern.factorize(values, "cholmod").solve(rhs)
     u_lu = c.pattern.factorize(values, "splu").solve(rhs)
@@ -106,7 +106,7 @@ def test_not_positive_definite_is_reported(backend):
         pytest.skip("CHOLMOD not installed")
     p = bp.grid_2d(6.0, 4.0, 1.0)
     mat = bp.LPS(p, bp.find_bonds(p, 2.0))
-    values = mat.numeric_stiffness({"K": 1.0, "G": 1.0}, 2.0)
+    values = mat.numeric_stiffness({"K": 1.0, "G": 1.0, "delta": 2.0})
     with pytest.raises(bp.NotPositiveDefiniteError):  # no constraints: rigid-body modes
         mat.pattern.factorize(values, backend).solve(np.ones(mat.pattern.n))
     with pytest.raises(bp.NotPositiveDefiniteError):

@@ -46,7 +46,7 @@ def scene():
 def dense_operator(scene, params):
     """A = K_ff + eps I, p_f = f_f - K_fc u_c, and H (columns: observed unit free dofs) densely."""
     c, mat = scene.constraints, scene.material
-    K = mat.pattern.matrix(mat.numeric_stiffness(params, params["delta"])).toarray()
+    K = mat.pattern.matrix(mat.numeric_stiffness(params)).toarray()
     free, fixed = c.free_dofs, np.flatnonzero(~c.free_mask)
     A = K[np.ix_(free, free)] + EPS * np.eye(len(free))
     p = scene.force.reshape(-1).numpy()[free] - K[np.ix_(free, fixed)] @ c.prescribed.reshape(-1).numpy()[fixed]
@@ -202,7 +202,7 @@ def test_trajectory_recovery_white_noise():
     scene = make_scene()
     c = scene.constraints
     params = tensors(MATERIAL)
-    force = linear_elastic(scene.material, params, params["delta"], load=scene.force, eps=EPS, constraints=c)
+    force = linear_elastic(scene.material, params, load=scene.force, eps=EPS, constraints=c)
     C = white_noise(TRUTH["sigma_c"], force.n)
     langevin = Langevin(force, C, TRUTH["eta"], operator=force.matrix)
     dt = 0.5 * langevin.explicit_limit()

@@ -177,7 +177,7 @@ def test_damage_index_independent_count_with_partial_volumes():
     bonds = bp.find_bonds(p, 3.0)
     mat = bp.BondBased(p, bonds)
     mu = intact_after_precrack(p, bonds, [c0, c1])
-    phi = damage_index(p, bonds, mu, mat.bond_weight({}, delta))
+    phi = damage_index(p, bonds, mu, mat.bond_weight({"delta": delta}))
 
     def crosses(a, b):  # solve a + s (b - a) = c0 + t (c1 - c0) for s, t in (0, 1)
         M = np.column_stack([b - a, c0 - c1])
@@ -239,7 +239,7 @@ def test_crack_path_from_precrack_damage(plate):
     p = plate
     bonds = bp.find_bonds(p, 3.0)
     mu = intact_after_precrack(p, bonds, [[-1.0, 10.0], [25.0, 10.0]])
-    phi = damage_index(p, bonds, mu, bp.BondBased(p, bonds).bond_weight({}, 3.0))
+    phi = damage_index(p, bonds, mu, bp.BondBased(p, bonds).bond_weight({"delta": 3.0}))
     path = crack_path(p, phi)
     np.testing.assert_allclose(path[:, 1], 10.0, atol=1e-12)
     assert abs(max(path[0, 0], path[-1, 0]) - 25.0) <= p.h

@@ -16,7 +16,7 @@ def wave():
     """A free 12 x 8 bond-based plate (192 dofs), density varying in space, and a smooth
     initial bump (zero velocity): an elastic wave problem."""
     p = bp.grid_2d(12, 8, 1.0)
-    F = linear_elastic(bp.BondBased(p, bp.find_bonds(p, 3.0)), {"K": 1.0}, 3.0)
+    F = linear_elastic(bp.BondBased(p, bp.find_bonds(p, 3.0)), {"K": 1.0, "delta": 3.0})
     M = lumped_mass(p, 1.0 + p.x[:, 0] / 12)
     r2 = ((p.x - p.x.mean(0)) ** 2).sum(1)
     u0 = torch.zeros(p.n, 2)
@@ -73,7 +73,7 @@ def test_damped_verlet_relaxes_to_the_static_solution():
                      [bp.Load(p.box((3, 0), (7, 1)), (0.0, -0.5))])
     params = {"K": 1.0, "G": 0.6}
     c = scene.constraints
-    F = linear_elastic(mat, params, delta, load=scene.force, constraints=c)
+    F = linear_elastic(mat, dict(params, delta=delta), load=scene.force, constraints=c)
     M = lumped_mass(p, 1.0, dofs=c.free_dofs)
     s = 1 / np.sqrt(M.numpy())
     omega_min = np.sqrt(np.linalg.eigvalsh(s[:, None] * F.matrix.toarray() * s[None, :]).min())

@@ -25,7 +25,7 @@ def plate():
     p = bp.grid_2d(SIDE, SIDE, H)
     bonds = bp.precrack(p, bp.find_bonds(p, DELTA), [[0.0, SIDE / 2], [SIDE / 2, SIDE / 2]])
     bcs = [bp.Dirichlet.layer(p, "bottom", DELTA), bp.Dirichlet.layer(p, "top", DELTA, (0.0, 0.2))]
-    return LoadedBody(bp.BondBased(p, bonds), {"K": 1000.0}, DELTA, bcs)
+    return LoadedBody(bp.BondBased(p, bonds), {"K": 1000.0, "delta": DELTA}, bcs)
 
 
 @pytest.fixture(scope="module")
@@ -109,7 +109,7 @@ def test_damage_ode_breaks_when_its_clock_runs_out():
     tau > logit(alpha0). The driver (vanishing noise) breaks its first bond at that step."""
     p = bp.grid_2d(20.0, 4.0, H)
     bcs = [bp.Dirichlet.layer(p, "left", DELTA), bp.Dirichlet.layer(p, "right", DELTA, (0.1, 0.0))]
-    body = LoadedBody(bp.BondBased(p, bp.find_bonds(p, DELTA)), {"K": 1000.0}, DELTA, bcs)
+    body = LoadedBody(bp.BondBased(p, bp.find_bonds(p, DELTA)), {"K": 1000.0, "delta": DELTA}, bcs)
     s1 = float(body.kinematics.stretch(quasi_static(body, [1e-3]).u).max()) / 1e-3
     k, s_c, alpha0 = 2000.0, 0.005, 0.999
     lams = np.linspace(0.02, 1.0, 50)

@@ -22,7 +22,7 @@ def plate():
     mat = bp.BondBased(p, bp.find_bonds(p, 2.0))
     load = torch.zeros(p.n, 2)
     load[:, 0] = torch.linspace(-0.1, 0.2, p.n)
-    return p, linear_elastic(mat, {"K": 1.0}, 2.0, load=load, eps=0.2)
+    return p, linear_elastic(mat, {"K": 1.0, "delta": 2.0}, load=load, eps=0.2)
 
 
 def discrete_covariance(A, C, dt, theta):

@@ -10,7 +10,7 @@ from bayespd.damage import CriticalStretch, DamageODE
 from bayespd.solvers.quasistatic import LoadedBody, equilibrium, quasi_static
 
 H, DELTA, U = 1.0, 3.0, 0.1  # spacing, horizon, pull at load factor 1 (mm)
-PARAMS = {"K": 1000.0, "G": 600.0}
+PARAMS = {"K": 1000.0, "G": 600.0, "delta": DELTA}
 
 
 def bar(cls=bp.BondBased, pull=(U, 0.0)):
@@ -19,7 +19,7 @@ def bar(cls=bp.BondBased, pull=(U, 0.0)):
     mat = cls(p, bp.find_bonds(p, DELTA))
     params = {k: PARAMS[k] for k in mat.param_names}
     bcs = [bp.Dirichlet.layer(p, "left", DELTA), bp.Dirichlet.layer(p, "right", DELTA, pull)]
-    return mat, params, bcs, LoadedBody(mat, params, DELTA, bcs)
+    return mat, params, bcs, LoadedBody(mat, params, bcs)
 
 
 def crossing(body, x=10.0):
@@ -29,11 +29,10 @@ def crossing(body, x=10.0):
 
 
 def elastic(mat, params, bcs):
-    return bp.Scene(mat, bcs, [bp.Load(mat.particles.layer("right", H), (0.0, 0.0))]).solve(
-        dict(params, delta=DELTA))
+    return bp.Scene(mat, bcs, [bp.Load(mat.particles.layer("right", H), (0.0, 0.0))]).solve(params)
 
 
-@pytest.mark.parametrize("cls", [bp.BondBased, bp.LPS])
+@pytest.mark.parametrize("cls", [bp.BondBased, bp.LPS, bp.ConicalBondBased])
 def test_small_strain_response_is_the_linear_solve(cls):
     """Before any bond breaks u(lambda) = lambda u_lin + O(lambda^2): at strain ~1e-7 the two
     agree to 1e-8, and the relative deviation grows in proportion to lambda (slope 1)."""
@@ -47,7 +46,7 @@ def test_small_strain_response_is_the_linear_solve(cls):
     assert 10 * 0.9 < dev[2] / dev[1] < 10 * 1.1, dev
 
 
-@pytest.mark.parametrize("cls", [bp.BondBased, bp.LPS])
+@pytest.mark.parametrize("cls", [bp.BondBased, bp.LPS, bp.ConicalBondBased])
 def test_bar_breaks_at_the_predicted_load_and_then_carries_nothing(cls):
     """A weak section (s0 halved across x = 10): the first bond fails at the first load step
     reaching lambda* = min_b s0_b / s_b(u_lin) (1 % slack for the O(strain) nonlinearity); the
@@ -95,7 +94,7 @@ def test_force_control_stops_when_the_loaded_piece_comes_loose():
     p = bp.grid_2d(20.0, 4.0, H)
     mat = bp.BondBased(p, bp.find_bonds(p, DELTA))
     load = bp.Load(p.layer("right", DELTA), (20.0, 0.0))
-    body = LoadedBody(mat, {"K": 1000.0}, DELTA, [bp.Dirichlet.layer(p, "left", DELTA)], [load])
+    body = LoadedBody(mat, {"K": 1000.0, "delta": DELTA}, [bp.Dirichlet.layer(p, "left", DELTA)], [load])
     s = body.kinematics.stretch(quasi_static(body, [1e-3]).u) / 1e-3
     s0 = torch.full((body.n_bonds,), 0.01)
     s0[crossing(body)] = 0.005
@@ -113,7 +112,7 @@ def test_a_detached_particle_leaves_the_system_nonsingular(eps):
     """A free particle whose bonds are all broken: eps = 0 drops its dofs (it keeps its
     displacement), eps > 0 keeps them (confinement, seed 002 eq 3: it returns to 0)."""
     mat, params, bcs, body = bar()
-    body = LoadedBody(mat, params, DELTA, bcs, eps=eps)
+    body = LoadedBody(mat, params, bcs, eps=eps)
     k = int(np.flatnonzero(body.particles.box([9, 1], [11, 3]))[0])
     intact = torch.ones(body.n_bonds)
     intact[torch.as_tensor((body.bonds.i == k) | (body.bonds.j == k))] = 0.0
@@ -140,7 +139,7 @@ def test_a_bond_listed_twice_is_refused(flip):
     i, j = (b.j[:1], b.i[:1]) if flip else (b.i[:1], b.j[:1])
     twice = bp.Bonds(np.r_[b.i, i], np.r_[b.j, j], np.r_[b.xi, np.asarray(p.x[j] - p.x[i])],
                      np.r_[b.length, b.length[:1]], b.h, b.delta_max, b.rule)
-    body = LoadedBody(bp.BondBased(p, twice), {"K": 1000.0}, DELTA,
+    body = LoadedBody(bp.BondBased(p, twice), {"K": 1000.0, "delta": DELTA},
                       [bp.Dirichlet.layer(p, "left", DELTA), bp.Dirichlet.layer(p, "right", DELTA, (U, 0.0))])
     with pytest.raises(ValueError, match="listed twice"):
         body.operator(torch.ones(body.n_bonds), body.constraints.free_dofs)

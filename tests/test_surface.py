@@ -58,7 +58,7 @@ def test_correction_is_one_in_the_bulk_and_differentiable():
     inner = torch.as_tensor(complete[bonds.i] & complete[bonds.j])
     for mat, moduli in [(bp.LPS(p, bonds, influence=bp.Conical()), {"K": K, "G": G}),
                         (bp.BondBased(p, bonds), {"K": K})]:
-        factor = bond_factors(mat, mat._moduli(moduli), {}, 2.7)
+        factor = bond_factors(mat, mat.moduli(dict(moduli, delta=2.7)), {"delta": 2.7})
         assert float((factor[inner] - 1).abs().max()) < 1e-12
         assert float((factor[~inner] - 1).abs().max()) > 0.05
 

@@ -61,4 +61,4 @@ def test_isolated_particle_has_empty_family():
     lonely = bp.from_points(np.vstack([p.x, [[20.0, 20.0]]]), np.append(p.volume, 1.0))
     mat = bp.BondBased(lonely, bp.find_bonds(lonely, 2.0))
     with pytest.raises(ValueError, match="particle 24 .* empty family"):
-        mat.stiffness({"K": 1.0}, 2.0)
+        mat.stiffness({"K": 1.0, "delta": 2.0})

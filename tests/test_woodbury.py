@@ -29,7 +29,7 @@ SIDE, H, DELTA = 12.0, 1.0, 3.0
 def body(material=bp.BondBased):
     p = bp.grid_2d(SIDE, SIDE, H)
     bcs = [bp.Dirichlet.layer(p, "bottom", DELTA), bp.Dirichlet.layer(p, "top", DELTA, (0.0, 0.1))]
-    return LoadedBody(material(p, bp.find_bonds(p, DELTA)), {"K": 1000.0, "G": 600.0}, DELTA, bcs)
+    return LoadedBody(material(p, bp.find_bonds(p, DELTA)), {"K": 1000.0, "G": 600.0, "delta": DELTA}, bcs)
 
 
 @pytest.fixture(scope="module")
@@ -123,7 +123,7 @@ def test_change_in_3d_by_the_loops_and_by_numpy(monkeypatch):
     with the damaged zone's tangent moved to a later u the two paths agree to rounding."""
     p = bp.grid_3d(5.0, 5.0, 5.0, 1.0)
     bcs = [bp.Dirichlet.layer(p, "bottom", 1.5, (0.0, 0.0, 0.0)), bp.Dirichlet.layer(p, "top", 1.5, (0.0, 0.0, 0.1))]
-    b = LoadedBody(bp.BondBased(p, bp.find_bonds(p, 1.5)), {"K": 1000.0}, 1.5, bcs)
+    b = LoadedBody(bp.BondBased(p, bp.find_bonds(p, 1.5)), {"K": 1000.0, "delta": 1.5}, bcs)
     before, after = broken(b, [3, 40]), broken(b, [3, 40, 41, 500, 501])
     active = b.active(before)
     gen = torch.Generator().manual_seed(0)

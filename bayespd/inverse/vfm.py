@@ -12,7 +12,7 @@ internal nodal force -(K u)_i) and f the scene's nodal loads. The extracted text
 garbles eq 30; the form above is derived from eqs 21 and 24a and is what we use. Seed 001's
 eq 31 evaluates W*_ext for a point load; here the same sum runs over the loaded particles.
 
-Linearity (derived here, not stated in the paper): with the energy of ``materials.py``,
+Linearity (derived here, not stated in the paper): with the energy of ``materials/lps.py``,
 
     W_i = (a_s / 2) theta_i^2 + (a_d / (2 m_i)) sum_j w e_ij^2 V_j,
     a_s = kappa - c G / d^2,   a_d = c G    (c = 8 in 2D, 15 in 3D; kappa = in-plane bulk),
@@ -37,19 +37,18 @@ import numpy as np
 import scipy.optimize
 import torch
 
-from bayespd.materials import _C_DEV
-
 
 def pd_constants(material, K, G):
-    """(a_s, a_d) = (kappa - c G / d^2, c G) of the module docstring, from bulk/shear moduli."""
+    """(a_s, a_d) = (kappa - c G / d^2, c G) of the module docstring, from bulk/shear moduli
+    (c = ``material.c_d`` and kappa = ``material.kappa`` of the LPS material)."""
     K, G = torch.as_tensor(K), torch.as_tensor(G)
-    c, d = _C_DEV[material.dim], material.dim
+    c, d = material.c_d, material.dim
     return material.kappa(K, G) - c * G / d**2, c * G
 
 
 def moduli_from_constants(material, a_s, a_d):
     """(K, G) from the PD constants; refuses constants that map to no positive K, G."""
-    c, d = _C_DEV[material.dim], material.dim
+    c, d = material.c_d, material.dim
     G = a_d / c
     kappa = a_s + a_d / d**2
     if material.dim == 3:
@@ -70,8 +69,7 @@ PROBES = [(1.0, 1.0), (3.0, 1.0), (2.0, 3.0)]  # (K, G): two split K into K_s, K
 
 def stiffness_times(material, params: dict, w: torch.Tensor) -> torch.Tensor:
     """K(params) w for fields w (M, N, dim), K assembled once (no autograd)."""
-    q = {k: v for k, v in params.items() if k != "delta"}
-    A = material.pattern.matrix(material.numeric_stiffness(q, params["delta"]))
+    A = material.pattern.matrix(material.numeric_stiffness(params))
     W = w.reshape(w.shape[0], -1).numpy().T  # (n_dofs, M)
     return torch.as_tensor(np.ascontiguousarray((A @ W).T)).reshape(w.shape)
 
@@ -215,9 +213,8 @@ class VirtualWork:
         """W*_int per field (eq 30) for any params (scalars or fields, delta included),
         differentiable in the params: -u*_k . K(params) u."""
         params = dict(self.fixed, **params)
-        q = {k: v for k, v in params.items() if k != "delta"}
         v = torch.zeros_like(u, requires_grad=True)
-        Ku = torch.autograd.grad(self.material.form(q, params["delta"], v, u), v, create_graph=True)[0]
+        Ku = torch.autograd.grad(self.material.form(params, v, u), v, create_graph=True)[0]
         return -(self.ustar * Ku).sum(dim=(1, 2))
 
     def residual(self, u, params: dict) -> torch.Tensor:

@@ -32,7 +32,7 @@ def lattice_stiffness(m: float, K: float, G: float, dim: int = 2, plane: str = "
     material = bp.LPS(p, bp.find_bonds(p, m, rule), plane=plane)
     centre = int(np.argmin(np.linalg.norm(p.x - n / 2, axis=1)))
     x = torch.as_tensor(p.x)
-    params = {"K": K, "G": G}
+    params = {"K": K, "G": G, "delta": m}
     modes = VOIGT[dim]
 
     def unit(k):
@@ -44,7 +44,7 @@ def lattice_stiffness(m: float, K: float, G: float, dim: int = 2, plane: str = "
     def W(eps):
         u = x @ torch.as_tensor(eps).T
         with torch.no_grad():
-            return float(material.energy_density(params, m, u)[centre])
+            return float(material.energy_density(params, u)[centre])
 
     k = len(modes)
     C = np.zeros((k, k))

@@ -207,7 +207,7 @@ class StochasticFracture:
         if len(damaged):
             x = np.asarray(body.particles.x)
             ends = np.unique(np.concatenate([body.bonds.i[damaged], body.bonds.j[damaged]]))
-            near = cKDTree(x[ends]).query(x, distance_upper_bound=ZONE_MARGIN * float(body.delta))[0]
+            near = cKDTree(x[ends]).query(x, distance_upper_bound=ZONE_MARGIN * float(body.params["delta"]))[0]
             inside |= np.isfinite(near)
         region = np.flatnonzero(inside[active // body.particles.dim])
         return region if len(region) else None

@@ -2,7 +2,7 @@
 
 ``LinearForce`` is f(u) = p - A u with A = K + eps I: the force of the potential of seed 002
 eq 3 with the linearised bond energy, V(u) = u^T K u / 2 - p^T u + (eps / 2) u^T u, of the
-intact or the damaged body (``damaged_terms``).
+intact or the damaged body (``material.terms(params, intact)``).
 ``largest_eigenvalue`` (Lanczos) gives stable time steps; ``bayespd.linalg.factors`` factorises.
 """
 from __future__ import annotations
@@ -12,10 +12,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 
-from bayespd.linalg.assembly import numeric_values, to_numpy
+from bayespd.linalg.assembly import to_numpy
 from bayespd.bond_loops import components
-from bayespd.materials import _C_DEV, LPS
-from bayespd.nonlinear import M_FLOOR
 from bayespd.linalg.factors import spd_factor
 from bayespd.linalg.sparse import NotPositiveDefiniteError
 
@@ -70,30 +68,6 @@ class LinearForce:
         return torch.from_numpy(spd_factor(self.matrix).solve(self.load.numpy()))
 
 
-def damaged_terms(material, params: dict, delta, intact: torch.Tensor):
-    """Gram terms of the linearised stiffness at intact fractions mu (per bond): the Hessian
-    at u = 0 of the energy in ``bayespd.nonlinear`` (bond weights w -> mu w; LPS: m floored
-    as there)."""
-    intact = torch.as_tensor(intact, dtype=torch.float64)
-    if intact.shape != material.length.shape:
-        raise ValueError(f"intact needs one value per bond ({material.length.shape[0]})")
-    moduli = material._moduli(params)
-    factor = material._bond_correction(moduli, params, delta)
-    if not isinstance(material, LPS):
-        return [(g, data, w * intact) for g, data, w in material._stiffness_terms(moduli, params, delta, factor)]
-    K, G = moduli["K"], moduli["G"]
-    d, cG = material.dim, _C_DEV[material.dim]
-    w0 = material.bond_weight(params, delta)
-    w, L, end = w0 * intact, material.length, material._end_bond
-    m = torch.maximum(material._family_sum(w[end] * L[end] ** 2 * material._end_volume),
-                      M_FLOOR * material.weighted_volume(w0))
-    V, i, j = material.volume, material._i, material._j
-    s = V * (material.kappa(K, G) - cG * G / d**2)
-    k_b = factor * cG * w * V[i] * V[j] * (G[i] / m[i] + G[j] / m[j])
-    g = material._dilatation_vectors(w, m)
-    return [(material._extension, material._extension_data, k_b), (material._dilatation, g.reshape(-1), s)]
-
-
 def floating_particles(bonds, intact, fixed: np.ndarray) -> np.ndarray:
     """Indices of the particles in pieces of the graph of bonds with intact fraction above
     CONNECTED (all bonds when ``intact`` is None) that hold no ``fixed`` particle."""
@@ -105,24 +79,20 @@ def floating_particles(bonds, intact, fixed: np.ndarray) -> np.ndarray:
     return np.flatnonzero(~anchored[label])
 
 
-def linear_elastic(material, params: dict, delta, load=None, eps: float = 0.0,
+def linear_elastic(material, params: dict, load=None, eps: float = 0.0,
                    constraints=None, intact=None) -> LinearForce:
     """The linearised elastic force of ``material`` with confinement eps (seed 002 eq 3).
 
     ``load`` is nodal forces (N, dim). With ``constraints`` (``boundary.Constraints``) the
     state is the free dofs and prescribed displacements enter the load as -K_fc u_c;
     without, the state is all N*dim dofs (node-major) and eps > 0 removes the rigid modes.
-    ``intact``: per-bond intact fractions of a damage state (``damaged_terms``). With eps = 0
+    ``intact``: per-bond intact fractions of a damage state (``material.terms``). With eps = 0
     the particles of unsupported pieces are recorded in ``floating`` (a singular A is fine for
     explicit dynamics; ``LinearForce.equilibrium`` refuses it).
     """
     if not eps >= 0:
         raise ValueError(f"the confinement eps must be >= 0, got {eps}")
-    if intact is None:
-        values = material.numeric_stiffness(params, delta)
-    else:
-        with torch.no_grad():
-            values = numeric_values(material.pattern, damaged_terms(material, params, delta, intact))
+    values = material.numeric_stiffness(params, intact)
     n_all = material.pattern.n
     p = torch.zeros(n_all) if load is None else torch.as_tensor(load, dtype=torch.float64).reshape(-1)
     if p.shape != (n_all,):

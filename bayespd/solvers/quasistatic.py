@@ -8,16 +8,17 @@ bond kinematics of ``bayespd.nonlinear`` at the current intact fractions mu:
 
     r(u) = f_int(u; mu) + lambda p - eps u = 0   on the free dofs.
 
-Solver: Newton, u <- u + (T + eps I)^-1 r. Bond-based: T is the exact Hessian of the bond
-energy at u, k mu [n n^T + (e/r) (I - n n^T)] per bond (n = y/|y|), with the geometric part
-e/r kept only in tension (e > 0), so T is positive semi-definite and the step a descent
-direction; this keeps a particle or fragment that hangs on its last bonds stable (the
-linearised stiffness gives it no transverse stiffness, and a Newton iteration with it stalls
-or diverges there). T is refactorised only when the iteration slows down (``equilibrium``).
-LPS: T is the linearised stiffness of the damaged body (broken bonds removed; the Hessian at
-u = 0), factorised once per damage state: modified Newton, contracting the error by
-O(max stretch) per iteration away from hanging pieces. A mechanism that is still attached
-(T singular) gets a small diagonal shift (``LoadedBody.tangent``).
+Solver: Newton, u <- u + (T + eps I)^-1 r. Bond-based (a ``pairwise`` law, ``materials.base``):
+T is the exact Hessian of the bond energy at u, k mu [n n^T + (e/r) (I - n n^T)] per bond (n =
+y/|y|), with the geometric part e/r kept only in tension (e > 0), so T is positive
+semi-definite and the step a descent direction; this keeps a particle or fragment that hangs on
+its last bonds stable (the linearised stiffness gives it no transverse stiffness, and a Newton
+iteration with it stalls or diverges there). T is refactorised only when the iteration slows
+down (``equilibrium``). LPS (any other law): T is the linearised stiffness of the damaged body
+(``material.terms(params, intact)``: broken bonds removed; the Hessian at u = 0), factorised
+once per damage state: modified Newton, contracting the error by O(max stretch) per iteration
+away from hanging pieces. A mechanism that is still attached (T singular) gets a small diagonal
+shift (``LoadedBody.tangent``).
 
 Detached pieces: with eps = 0, a piece of the intact-bond graph that holds no Dirichlet
 particle (an isolated particle, a fragment) has its dofs dropped from the solve: it keeps the
@@ -35,13 +36,10 @@ import scipy.sparse as sp
 import torch
 
 from bayespd import bond_loops
-from bayespd.linalg.assembly import numeric_values
 from bayespd.boundary import Constraints
 from bayespd.damage import DamageIndex, DamageODE
-from bayespd.materials import BondBased
 from bayespd.nonlinear import NonlinearBonds
 from bayespd.solvers.connectivity import FloatingPieces
-from bayespd.solvers.linear import damaged_terms
 from bayespd.linalg.woodbury import LocalChange
 from bayespd.linalg.sparse import ConvergenceError, NotPositiveDefiniteError
 
@@ -49,21 +47,21 @@ MECHANISM_SHIFT = 1e-8  # relative diagonal shift of a singular tangent (see Loa
 
 
 class LoadedBody:
-    """A ``BondBased`` or ``LPS`` material at (params, delta) under Dirichlet regions and loads
+    """A material at ``params`` (its moduli and "delta") under Dirichlet regions and loads
     whose values are those at load factor 1, with confinement ``eps`` (seed 002 eq 3).
 
     ``loaded``: the particles whose reaction and mean displacement are recorded (default:
     the Dirichlet regions with a non-zero value, and the loaded regions).
     """
 
-    def __init__(self, material, params: dict, delta, dirichlet, loads=(), eps: float = 0.0, loaded=None):
+    def __init__(self, material, params: dict, dirichlet, loads=(), eps: float = 0.0, loaded=None):
         if not eps >= 0:
             raise ValueError(f"the confinement eps must be >= 0, got {eps}")
         p = material.particles
-        self.material, self.params, self.delta, self.eps = material, params, delta, float(eps)
+        self.material, self.params, self.eps = material, params, float(eps)
         self.particles, self.bonds = p, material.bonds
         self.kinematics = NonlinearBonds(material)
-        self.forces = self.kinematics.at(params, delta)
+        self.forces = self.kinematics.at(params)
         self.constraints = Constraints(p, material.pattern, list(dirichlet))
         self.load = sum((load.nodal(p) for load in loads), torch.zeros(p.n, p.dim))
         if loaded is None:
@@ -130,8 +128,9 @@ class LoadedBody:
 
     @property
     def geometric(self) -> bool:
-        """True when the tangent depends on u (bond-based: the exact Hessian)."""
-        return isinstance(self.material, BondBased)
+        """True when the tangent depends on u: a ``pairwise`` (bond-based) law, whose exact
+        bond Hessian is known."""
+        return self.material.pairwise
 
     def operator(self, intact, active: np.ndarray, u: torch.Tensor | None = None) -> sp.csc_matrix:
         """T + eps I on the ``active`` dofs (scipy CSC), T the tangent of the module docstring
@@ -205,7 +204,7 @@ class LoadedBody:
 
             xi, length = self.kinematics.geometry(torch.float64)
             return bond_loops.tangent_change(at(u), at(u_after),
-                                             self.kinematics._ends, xi.numpy(), length.numpy(),
+                                             self.kinematics.ends, xi.numpy(), length.numpy(),
                                              self.forces.k.detach().numpy(), bonds, before, after, local)
         d, i, j = self.particles.dim, self.bonds.i, self.bonds.j
         H = (self._bond_hessians(u_after, bonds) * after[bonds, None, None]
@@ -238,8 +237,7 @@ class LoadedBody:
         """Values of T on the material's pattern."""
         intact = torch.as_tensor(intact)
         if not self.geometric:
-            terms = damaged_terms(self.material, self.params, self.delta, intact)
-            return numeric_values(self.material.pattern, terms).numpy().copy()
+            return self.material.numeric_stiffness(self.params, intact).numpy().copy()
         H = self._bond_hessians(u) * intact.numpy()[:, None, None]
         N, d, i, j = self.particles.n, self.particles.dim, self.bonds.i, self.bonds.j
         S = np.stack([np.bincount(i, H[:, a, c], minlength=N) + np.bincount(j, H[:, a, c], minlength=N)

@@ -41,7 +41,7 @@ def _geometry(side: float, h: float, m: int):
 def plate_body(side, h, m, K) -> LoadedBody:
     """The plate as a ``LoadedBody`` at bulk modulus K (top layer at unit displacement)."""
     material, bcs, delta = _geometry(side, h, m)
-    return LoadedBody(material, {"K": K}, delta, list(bcs))
+    return LoadedBody(material, {"K": K, "delta": delta}, list(bcs))
 
 
 @lru_cache(maxsize=4)

@@ -12,7 +12,7 @@ def lps_terms(nx=14, ny=8, m=2.6, delta=2.4, plane="stress"):
     p = bp.grid_2d(float(nx), float(ny), 1.0)
     bonds = bp.find_bonds(p, m)
     mat = bp.LPS(p, bonds, plane=plane)
-    terms = mat._terms({"K": torch.tensor(3000.0), "G": torch.tensor(1500.0)}, torch.tensor(delta))
+    terms = mat.terms({"K": torch.tensor(3000.0), "G": torch.tensor(1500.0), "delta": torch.tensor(delta)})
     return p, bonds, mat, terms
 
 

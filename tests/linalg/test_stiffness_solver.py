@@ -15,7 +15,7 @@ BACKENDS = ["splu"] + (["cholmod"] if sparse.cholmod is not None else [])
 
 def clamped():
     p, bonds, mat, terms = lps_terms()
-    asm = Assembly(mat._grams(), ~np.repeat(p.layer("left", 2.6), 2))
+    asm = Assembly(mat.grams(), ~np.repeat(p.layer("left", 2.6), 2))
     K = sum(g.matrix(d.numpy(), w.numpy()) for g, d, w in terms).toarray()
     return asm, terms, K[np.ix_(asm.free_index, asm.free_index)]
 
@@ -54,12 +54,12 @@ def test_pcg_matches_direct_solvers(plane):
     fixed = np.zeros((p.n, 2), dtype=bool)
     fixed[p.layer("left", 2.6)] = True
     fixed[p.layer("right", 1.0), 1] = True
-    asm = Assembly(mat._grams(), ~fixed.reshape(-1))
+    asm = Assembly(mat.grams(), ~fixed.reshape(-1))
     rhs = np.random.default_rng(0).standard_normal((asm.free_index.size, 2))
     backends = ["splu"] + (["cholmod"] if sparse.cholmod is not None else [])
     direct = {b: asm.factorize(terms, "direct", backend=b).solve(rhs) for b in backends}
     for b in backends:
-        for rows in (None, {mat._grams()[0]: bonds.length <= 1.5}):
+        for rows in (None, {mat.grams()[0]: bonds.length <= 1.5}):
             f = asm.factorize(terms, "pcg", backend=b, rtol=1e-12, precondition_rows=rows)
             u = f.solve(rhs)
             assert 0 < f.iterations < 100
@@ -71,7 +71,7 @@ def test_pcg_matches_direct_solvers(plane):
 
 def test_pcg_reports_non_convergence_and_indefiniteness():
     p, _, mat, terms = lps_terms()
-    asm = Assembly(mat._grams(), ~np.repeat(p.layer("left", 2.6), 2))
+    asm = Assembly(mat.grams(), ~np.repeat(p.layer("left", 2.6), 2))
     rhs = np.ones(asm.free_index.size)
     with pytest.raises(sparse.ConvergenceError, match="did not converge"):
         asm.factorize(terms, "pcg", rtol=1e-14, maxiter=3).solve(rhs)
@@ -83,6 +83,6 @@ def test_pcg_reports_non_convergence_and_indefiniteness():
 def test_unconstrained_pcg_is_not_silent():
     """No constraint: K is singular; PCG must raise rather than return a rigid-body drift."""
     _, _, mat, terms = lps_terms(nx=8, ny=6)
-    asm = Assembly(mat._grams())
+    asm = Assembly(mat.grams())
     with pytest.raises((bp.NotPositiveDefiniteError, sparse.ConvergenceError)):
         asm.factorize(terms, "pcg", maxiter=500).solve(np.ones(asm.n))

@@ -32,12 +32,12 @@ def plate():
     material = bp.BondBased(p, bonds, plane="strain")
     dirichlet = [bp.Dirichlet.layer(p, "bottom", DELTA), bp.Dirichlet.layer(p, "top", DELTA, (0.0, TOP))]
     obs = aperture_observation(p, np.stack([X, X * 0 + Y_CRACK + 0.5], 1), np.stack([X, X * 0 + Y_CRACK - 0.5], 1))
-    return material, dirichlet, obs, SmoothFracture(material, {"K": 1.0}, DELTA, dirichlet, ETA)
+    return material, dirichlet, obs, SmoothFracture(material, {"K": 1.0, "delta": DELTA}, dirichlet, ETA)
 
 
 def bond_breaking_openings(material, dirichlet, obs, lam, step):
     """Reference: bayespd.solvers.quasistatic (exact bond kinematics, staggered damage updates)."""
-    body = LoadedBody(material, {"K": 1.0}, DELTA, dirichlet)
+    body = LoadedBody(material, {"K": 1.0, "delta": DELTA}, dirichlet)
     res = quasi_static(body, np.linspace(step, lam, int(round(lam / step))), SmoothStep(S0, ETA), damage_tol=1e-9)
     return obs(res.u)
 
@@ -104,6 +104,7 @@ def test_bad_input_is_refused(plate):
     with pytest.raises(ValueError, match=r"y has shape \(9, 8, 2\) but the model predicts \(10, 8, 2\)"):
         model(torch.zeros(9, 8, 2))
     with pytest.raises(ValueError, match="bond-based"):
-        SmoothFracture(bp.LPS(material.particles, material.bonds), {"K": 1.0, "G": 1.0}, DELTA, dirichlet, ETA)
+        SmoothFracture(bp.LPS(material.particles, material.bonds), {"K": 1.0, "G": 1.0, "delta": DELTA},
+                       dirichlet, ETA)
     with pytest.raises(ValueError, match="eta must be positive"):
-        SmoothFracture(material, {"K": 1.0}, DELTA, dirichlet, 0.0)
+        SmoothFracture(material, {"K": 1.0, "delta": DELTA}, dirichlet, 0.0)

@@ -1,0 +1,40 @@
+"""Checks shared by every material law: moduli in range, and moduli from (E, nu)."""
+from __future__ import annotations
+
+import torch
+
+
+def moduli_from_young(E, nu):
+    """Bulk and shear moduli (K, G) from Young's modulus and Poisson's ratio."""
+    E, nu = torch.as_tensor(E), torch.as_tensor(nu)
+    if not bool(torch.all(torch.isfinite(E)) and torch.all(E > 0)):
+        raise ValueError("Young's modulus E must be finite and positive")
+    if not bool(torch.all((nu > -1) & (nu < 0.5))):
+        raise ValueError("Poisson's ratio must lie in (-1, 0.5): at nu = 0.5 (incompressible) "
+                         "K = E / (3 (1 - 2 nu)) is infinite, and with it the plane-strain LPS "
+                         "constant kappa = K + G/3, and above 0.5 K is negative; use nu < 0.5 "
+                         "(e.g. 0.499: the condition number of K grows like 1 / (1 - 2 nu), "
+                         "which a float64 direct solve handles)")
+    return E / (3 * (1 - 2 * nu)), E / (2 * (1 + nu))
+
+
+class ParameterRangeError(ValueError):
+    """A modulus outside (0, inf): bad input, or a sampler's or optimiser's trial point that
+    over- or underflowed (which the inference code treats as a rejected proposal)."""
+
+
+class NonFiniteParameterError(ParameterRangeError):
+    """A modulus is NaN or inf."""
+
+
+def check_modulus(name: str, value, n: int) -> torch.Tensor:
+    """A modulus as a tensor broadcastable to (n,); refuse NaN, inf and non-positive values."""
+    v = torch.as_tensor(value)
+    if v.dim() > 1 or (v.dim() == 1 and v.shape[0] != n):
+        raise ValueError(f"{name} must be a scalar or have one value per particle ({n})")
+    if not bool(torch.all(torch.isfinite(v))):
+        raise NonFiniteParameterError(f"{name} contains NaN or inf: pass finite moduli")
+    if not bool(torch.all(v > 0)):
+        raise ParameterRangeError(f"{name} must be positive (got min {float(v.min()):g}): moduli "
+                         "are positive; sample them on a log scale")
+    return v

@@ -1,0 +1,190 @@
+"""Linear peridynamic solid (ordinary state-based LPS, seed 000 eqs 5-10, seed 001 eqs 18-19,
+35-45): linearised stiffness, damaged stiffness and exact-kinematics force.
+
+With the dilatation theta_i = (d/m_i) sum_j w x e V_j, the deviatoric extension
+e^d = e - theta x / d and alpha = c_d G / m (c_2 = 8, c_3 = 15), the energy density
+W_i = kappa/2 theta^2 + alpha/2 sum_j w (e^d)^2 V_j rewrites, using sum_j w x e^d V_j = 0, as
+
+    W_i = (kappa_i / 2 - c_d G_i / (2 d^2)) theta_i^2 + (c_d G_i / (2 m_i)) sum_j w e_ij^2 V_j,
+
+so K = D^T diag(s) D + B^T diag(k_b) B (D maps u to dilatations, B to bond extensions;
+see assembly.py) is the Hessian of sum_i V_i W_i: symmetric
+even when the moduli vary from particle to particle (seed 000 eq 8). kappa is the in-plane
+bulk modulus: 9KG/(3K+4G) in plane stress, K + G/3 in plane strain, K in 3D. This is the
+2D split of Le et al. (2014) and equals seed 001's eqs 18-19 (which use the 3D split x theta/3
+in 2D: expanding eq 45 with eq 41 gives the same coefficient 2(K + G/3)/q of theta x in plane
+strain). Seed 000 prints k + mu/9 for that coefficient; the calibration above gives k + mu/3.
+Every bond carries the weight omega(|xi|, delta) * beta(delta); LPS needs no recalibration
+for omega: m absorbs it.
+
+Damage and exact kinematics (``bayespd.nonlinear``): the same energy with the exact extension
+and the intact weights mu w: m_i = sum_j mu w |xi|^2 V_j, theta_i = (d / m_i) sum_j mu w |xi| e V_j,
+
+    V_i W_i = V_i [(kappa_i/2 - c_d G_i/(2 d^2)) theta_i^2 + (c_d G_i/(2 m_i)) sum_j mu w e^2 V_j].
+
+m_i is floored at ``M_FLOOR`` times its undamaged value: a fully broken particle (theta = 0,
+no bond energy) then divides 0 by a positive number; above the floor nothing changes, below it
+the particle's energy fades continuously to zero with its last bonds. The damaged linearised
+stiffness (``terms(params, intact)``) is the Hessian of this energy at u = 0.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from bayespd.linalg.assembly import Gram
+from bayespd.materials.base import Force, Material
+
+M_FLOOR = 1e-9
+C_DEV = {2: 8.0, 3: 15.0}  # c_d of alpha = c_d G / m
+
+
+class LPS(Material):
+    """Linear peridynamic solid (state-based), 2D plane stress / plane strain or 3D.
+
+    Params: ``{"K": bulk, "G": shear, "delta": horizon}`` (3D moduli; scalars or per-particle
+    tensors), plus the influence function's parameters if it has any.
+    """
+
+    moduli_names = ("K", "G")
+
+    def __init__(self, particles, bonds, plane: str = "stress", influence=None,
+                 surface_correction: bool = False):
+        super().__init__(particles, bonds, plane, influence, surface_correction)
+        n, d, nb = particles.n, self.dim, bonds.n
+        self.c_d = C_DEV[d]
+        # family ends: one per bond touching a particle, then one self end per particle
+        self._owner = torch.as_tensor(np.concatenate([bonds.i, bonds.j]))
+        self._end_node = torch.as_tensor(np.concatenate([bonds.j, bonds.i]))
+        self._end_bond = torch.as_tensor(np.concatenate([np.arange(nb), np.arange(nb)]))
+        self._end_sign = torch.cat([torch.ones(nb), -torch.ones(nb)])
+        self._end_volume = self.volume[self._end_node]
+        owner = np.concatenate([bonds.i, bonds.j, np.arange(n)])
+        node = np.concatenate([bonds.j, bonds.i, np.arange(n)])
+        # D: dilatations theta_i = sum_e g_e . u_node(e)
+        a = np.arange(d)
+        self._dilatation = Gram(np.repeat(owner, d), (d * node[:, None] + a).reshape(-1), n, d * n)
+
+    def grams(self) -> list[Gram]:
+        return [self.extension_gram, self._dilatation]
+
+    def kappa(self, K: torch.Tensor, G: torch.Tensor) -> torch.Tensor:
+        """In-plane bulk modulus of the dimension-reduced continuum."""
+        if self.dim == 3:
+            return K
+        return 9 * K * G / (3 * K + 4 * G) if self.plane == "stress" else K + G / 3
+
+    def _family_sum(self, per_end: torch.Tensor) -> torch.Tensor:
+        return torch.zeros(self.particles.n, dtype=per_end.dtype).index_add(0, self._owner, per_end)
+
+    def _family_volume(self, w: torch.Tensor) -> torch.Tensor:
+        return self._family_sum(w[self._end_bond] * self.length[self._end_bond] ** 2 * self._end_volume)
+
+    def weighted_volume(self, w: torch.Tensor) -> torch.Tensor:
+        """m_i = sum_j omega beta |xi|^2 V_j (seed 000 eq 9) for bond weights w."""
+        m = self._family_volume(w)
+        if bool(torch.any(m <= 0)):
+            raise ValueError("a particle has a non-positive weighted volume m: the influence "
+                             "function must be non-negative on average over each family")
+        return m
+
+    def _dilatation_vectors(self, w, m):
+        """g_e with theta_i = sum_e g_e . u_node(e) (seed 000 eq 10), self ends last."""
+        bond, d = self._end_bond, self.dim
+        coef = d * w[bond] * self.length[bond] * self._end_volume / m[self._owner]
+        g = (coef * self._end_sign)[:, None] * self.unit[bond]
+        g_self = -torch.zeros(self.particles.n, d, dtype=g.dtype).index_add(0, self._owner, g)
+        return torch.cat([g, g_self])
+
+    def energy_parts(self, moduli, params, u, factor=1.0):
+        """W_i (seed 001 eq 40) rewritten as in the module docstring, split into the
+        dilatation part and the bond part (whose bonds carry the correction ``factor``)."""
+        K, G = moduli["K"], moduli["G"]
+        d, c = self.dim, self.c_d
+        w = self.bond_weight(params)
+        m = self.weighted_volume(w)
+        theta = self._dilatation.apply(self._dilatation_vectors(w, m).reshape(-1), u.reshape(-1))
+        sum_e2 = self._family_sum((factor * w * self.extension(u) ** 2)[self._end_bond] * self._end_volume)
+        return 0.5 * (self.kappa(K, G) - c * G / d**2) * theta**2, 0.5 * c * G / m * sum_e2
+
+    def bulk_energy_parts(self, moduli, params, axis: int):
+        """The two parts of W for a unit uniaxial strain along ``axis`` at a particle with a
+        complete lattice family (where theta = 1 exactly), per particle's moduli."""
+        K, G = moduli["K"], moduli["G"]
+        d, c = self.dim, self.c_d
+        r, n, cell = self.lattice_family
+        w = self.lattice_weight(r, params)
+        m = (w * r**2).sum() * cell
+        sum_e2 = (w * (n[:, axis] ** 2 * r) ** 2).sum() * cell
+        return 0.5 * (self.kappa(K, G) - c * G / d**2), 0.5 * c * G / m * sum_e2
+
+    def stiffness_terms(self, moduli, params, factor=1.0, intact=None):
+        """K = B^T diag(k_b) B + D^T diag(s) D (module docstring); with ``intact`` the bond
+        weights are mu w and m is floored at M_FLOOR times its undamaged value."""
+        K, G = moduli["K"], moduli["G"]
+        d, c = self.dim, self.c_d
+        w = self.bond_weight(params)
+        m = self.weighted_volume(w)
+        if intact is not None:
+            w = w * intact
+            m = torch.maximum(self._family_volume(w), M_FLOOR * m)
+        V, i, j = self.volume, self.i, self.j
+        s = V * (self.kappa(K, G) - c * G / d**2)
+        k_b = factor * c * w * V[i] * V[j] * (G[i] / m[i] + G[j] / m[j])
+        g = self._dilatation_vectors(w, m)
+        return [(self.extension_gram, self.extension_data, k_b), (self._dilatation, g.reshape(-1), s)]
+
+    def nonlinear(self, kinematics, params, dtype=torch.float64):
+        return LPSForce(kinematics, params, dtype)
+
+
+class LPSForce(Force):
+    """LPS: dV/de_b = mu w V_i V_j [|xi| (a_i + a_j) + F_b e (b_i + b_j)] with
+    a = 2 d A theta / m, b = c_d G / m, A = kappa/2 - c_d G/(2 d^2), F_b the surface factor."""
+
+    def __init__(self, kin, params, dtype=torch.float64):
+        super().__init__(kin, params, dtype)
+        mat, d, L = kin.material, kin.dim, kin.length
+        K, G = self.moduli["K"], self.moduli["G"]
+        w = mat.bond_weight(params)
+        Vi, Vj = mat.volume[kin.i], mat.volume[kin.j]
+        coef = {"A": 0.5 * (mat.kappa(K, G) - mat.c_d * G / d**2), "cG": mat.c_d * G,
+                "m0": mat.weighted_volume(w), "volume": mat.volume,
+                "wVVL": w * Vi * Vj * L, "wVVF": w * Vi * Vj * self.factor,
+                "wLVi": w * L * Vi, "wLVj": w * L * Vj}
+        for name, value in coef.items():
+            setattr(self, name, value.to(dtype))
+
+    def _sum(self, at_i, at_j):
+        """Per-particle sum of per-bond values at_i (to end i) and at_j (to end j)."""
+        z = torch.zeros(self.kin.n, dtype=at_i.dtype)
+        return z.index_add_(0, self.kin.i, at_i).index_add_(0, self.kin.j, at_j)
+
+    def _state(self, u, intact, components=None):
+        """(y, |y|, mu e, e, m, theta, mu); mu e stands for e when there is no damage."""
+        kin = self.kin
+        intact = self._intact(u, intact)
+        y, r, e = components or kin.components(u)
+        if intact is None:
+            me, m = e, self.m0
+        else:
+            me = e * intact
+            wL2 = intact * kin.geometry(self.dtype)[1]
+            m = torch.maximum(self._sum(wL2 * self.wLVj, wL2 * self.wLVi), M_FLOOR * self.m0)
+        theta = kin.dim / m * self._sum(self.wLVj * me, self.wLVi * me)
+        return y, r, me, e, m, theta, intact
+
+    def force(self, u, intact=None, components=None):
+        kin = self.kin
+        y, r, me, e, m, theta, intact = self._state(u, intact, components)
+        ab = torch.stack([2 * kin.dim * self.A * theta / m, self.cG / m], dim=1)
+        ab = ab.index_select(0, kin.i) + ab.index_select(0, kin.j)
+        bond = self.wVVL * ab[:, 0] if intact is None else self.wVVL * intact * ab[:, 0]
+        t = torch.addcmul(bond, self.wVVF * me, ab[:, 1])
+        return self._scatter(y, t / r, u)
+
+    def strain_energy(self, u, intact=None):
+        y, r, me, e, m, theta, _ = self._state(u, intact)
+        b = self.cG / m
+        bond = 0.5 * self.wVVF * me * e * (b[self.kin.i] + b[self.kin.j])
+        return (self.volume * self.A * theta**2).sum() + bond.sum()
