@@ -1,29 +1,33 @@
 """bayespd: calibrate peridynamic models of solids and fracture with honest uncertainty.
 
-The numerical core (this package minus ``bayespd.infer``) never imports Pyro.
+The numerical core (this package minus ``bayespd.infer`` and the installed ``bayespd.models``)
+never imports Pyro. ``__all__`` is the public API that the README's example and ``models/`` use.
 """
 import torch
 
 torch.set_default_dtype(torch.float64)
 
 from bayespd.discretize import Particles, from_points, grid_2d, grid_3d  # noqa: E402
-from bayespd.bonds import Bonds, find_bonds, precrack  # noqa: E402
+from bayespd.bonds import Bonds, check_horizon, find_bonds, precrack  # noqa: E402
 from bayespd.influence import Bernstein, Conical, Constant, Gaussian  # noqa: E402
 from bayespd.materials import LPS, BondBased, ConicalBondBased, moduli_from_young  # noqa: E402
-from bayespd.boundary import Dirichlet, Load  # noqa: E402
+from bayespd.boundary import Constraints, Dirichlet, Load  # noqa: E402
 from bayespd.observe import (GridObservation, Observation, OpeningObservation, ParticleObservation,  # noqa: E402
                              edge_mask, finite_mask, grid_points, model_data)
 from bayespd.dic import frame_data, read_dice  # noqa: E402
 from bayespd.vtk import Series as VTKSeries, write_pvd, write_vtu  # noqa: E402
 from bayespd.meshes import from_mesh  # noqa: E402
+from bayespd.gmrf import GMRF  # noqa: E402
+from bayespd.nonlinear import NonlinearBonds  # noqa: E402
 from bayespd.problem import Scene  # noqa: E402
-from bayespd.linalg.sparse import NotPositiveDefiniteError, solve  # noqa: E402
+from bayespd.linalg.sparse import ConvergenceError, NotPositiveDefiniteError, solve  # noqa: E402
 
 __all__ = [
-    "Particles", "grid_2d", "grid_3d", "from_points", "from_mesh", "Bonds", "find_bonds", "precrack",
+    "Particles", "grid_2d", "grid_3d", "from_points", "from_mesh", "Bonds", "find_bonds", "check_horizon",
+    "precrack",
     "Constant", "Conical", "Gaussian", "Bernstein", "LPS", "BondBased", "ConicalBondBased",
     "moduli_from_young",
-    "Dirichlet", "Load", "Observation", "OpeningObservation", "ParticleObservation", "GridObservation", "grid_points",
+    "Constraints", "Dirichlet", "Load", "NonlinearBonds", "GMRF", "Observation", "OpeningObservation", "ParticleObservation", "GridObservation", "grid_points",
     "edge_mask", "finite_mask", "model_data", "read_dice", "frame_data", "write_vtu", "write_pvd",
-    "VTKSeries", "Scene", "NotPositiveDefiniteError", "solve",
+    "VTKSeries", "Scene", "NotPositiveDefiniteError", "ConvergenceError", "solve",
 ]

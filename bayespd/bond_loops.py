@@ -1,7 +1,7 @@
 """Compiled loops over the bonds for the CPU paths of ``bayespd.nonlinear``, the damage index
 and the fracture driver (numba, optional: ``pip install bayespd[fast]``).
 
-torch evaluates the stretch and the PMB force of seed 002 eq 1-2 as a dozen passes over the
+torch evaluates the stretch and the PMB force of Dodwell 2019 eq 1-2 as a dozen passes over the
 bond arrays, each writing a temporary; a loop reads each bond once and writes only its
 result: ``stretch`` (s = e / |xi|) and ``pmb_force`` (f = -D^T (t y / |y|), t = k mu e),
 each from u (the gather of u_j - u_i is cheaper than reading back stored components). They

@@ -11,7 +11,7 @@ from bayespd.linalg.sparse import Pattern
 
 
 class Dirichlet:
-    """Prescribed displacement on a region (a layer at least delta thick, seed 001 §3.1).
+    """Prescribed displacement on a region (a layer at least delta thick, Delorme 2018 §3.1).
 
     ``value`` gives one entry per component; ``None`` leaves that component free
     (e.g. ``(None, 0.0)`` is a roller). ``depth`` is the layer thickness when known, so the

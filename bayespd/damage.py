@@ -26,7 +26,7 @@ def _positive(name, value):
 
 
 class CriticalStretch:
-    """Sharp, irreversible critical stretch (seed 002 eq 2): mu = 1 while max_t s < s0, then 0
+    """Sharp, irreversible critical stretch (Dodwell 2019 eq 2): mu = 1 while max_t s < s0, then 0
     for ever. ``s0`` is a scalar or one value per bond."""
 
     def __init__(self, s0):
@@ -41,12 +41,12 @@ class CriticalStretch:
 
     def intact(self, state) -> torch.Tensor:
         """1 where max_t s < s0, else 0, written as floats by the comparison itself (a bool
-        tensor converted with ``.to`` takes 4x as long)."""
+        tensor converted with ``.to`` is slower)."""
         return torch.lt(state, self.s0, out=torch.empty_like(state))
 
 
 class SmoothStep(CriticalStretch):
-    """gamma = (1 - tanh((max_t s - s0) / eta)) / 2 (seed 004 eq 3.10): irreversible,
+    """gamma = (1 - tanh((max_t s - s0) / eta)) / 2 (You 2023 eq 3.10): irreversible,
     differentiable in s0 and eta, the sharp law as eta -> 0."""
 
     def __init__(self, s0, eta):
@@ -58,7 +58,7 @@ class SmoothStep(CriticalStretch):
 
 
 class DamageODE:
-    """Damage ODE of seed 002 §2.1, with the rate lam that the paper lists but does not print:
+    """Damage ODE of Dodwell 2019 §2.1, with the rate lam that the paper lists but does not print:
 
         d alpha / dt = -lam exp(k s) alpha^n (1 - alpha)^m,   0 < alpha(0) = alpha0 < 1,
 
@@ -87,7 +87,7 @@ class DamageODE:
                              "(no damage ever starts), alpha = 0 is a broken bond")
         k_ = torch.as_tensor(k)
         if not bool(torch.all(torch.isfinite(k_) & (k_ >= 0))):
-            raise ValueError("k must be finite and non-negative (seed 002: positive constants)")
+            raise ValueError("k must be finite and non-negative (Dodwell 2019: positive constants)")
         if not float(torch.as_tensor(n).min()) >= 1:
             raise ValueError("n must be >= 1: for n < 1 alpha reaches 0 in finite time")
         if not (int(substeps) == substeps and substeps >= 1):

@@ -9,7 +9,7 @@ from scipy.spatial import cKDTree
 
 @dataclass(frozen=True)
 class Particles:
-    """A set of particles (EMU nodal discretisation, seed 001 §2.2.4).
+    """A set of particles (EMU nodal discretisation, Delorme 2018 §2.2.4).
 
     ``x`` is (N, dim) reference positions, ``volume`` (N,) the cell volumes (h*h*t in 2D),
     ``h`` the nominal spacing used by the partial-volume rule, ``thickness`` the out-of-plane

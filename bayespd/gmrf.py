@@ -19,7 +19,7 @@ log det Q = N log tau + sum_k log(1 + ell^2 lambda_k) and (1/N) tr (I + ell^2 A)
 mean_k 1 / (1 + ell^2 lambda_k), both O(N) per evaluation and differentiable in ell and s.
 The quadratic form uses the sparse Q (torch sparse, the graph's pattern).
 
-Tikhonov link (seed 000 eq 12 with a general L): at fixed (ell, s) the negative log density
+Tikhonov link (Turner 2015 eq 12 with a general L): at fixed (ell, s) the negative log density
 is psi/2 ||L (x - m)||^2 + const with psi = tau and L = [I; ell sqrt(c) W^1/2 D]
 (``square_root``), L^T L = I + ell^2 A: the MAP of a model with this prior is the Tikhonov
 solution with that psi and L.

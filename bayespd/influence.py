@@ -3,7 +3,7 @@
 Each is differentiable in delta and in its own parameters, and gives its radial moments
 M_k(delta) = int_0^delta omega(r) r^k dr in closed form, which the materials use to calibrate
 their constants with the same weights (so the bulk response does not depend on the choice):
-LPS absorbs omega into the weighted volume m (seed 000 eq 9), bond-based divides its
+LPS absorbs omega into the weighted volume m (Turner 2015 eq 9), bond-based divides its
 micromodulus by int omega r dV (see ``BondBased.micromodulus``).
 
 A learnable influence function names its parameters in ``param_names``; they are passed in
@@ -63,7 +63,7 @@ class Gaussian(Influence):
 
 
 class Bernstein(Influence):
-    """omega = sum_k D_k r^-alpha B_{k,P}(r / delta) (seed 004 eqs 4.2-4.3) with learnable
+    """omega = sum_k D_k r^-alpha B_{k,P}(r / delta) (You 2023 eqs 4.2-4.3) with learnable
     coefficients ``params["D"]`` (P + 1 values). Only the shape of omega matters: the
     material constants are calibrated with it, so D is identifiable up to a common scale.
     """
@@ -74,7 +74,7 @@ class Bernstein(Influence):
         if degree < 0 or int(degree) != degree:
             raise ValueError("Bernstein degree P must be a non-negative integer")
         if not alpha < 3:
-            raise ValueError("the singularity order alpha must be below 3 (seed 004 eq 4.4)")
+            raise ValueError("the singularity order alpha must be below 3 (You 2023 eq 4.4)")
         self.degree, self.alpha = int(degree), float(alpha)
         k = torch.arange(self.degree + 1, dtype=torch.get_default_dtype())
         self._k = k

@@ -1,7 +1,7 @@
 """Geometrically exact (nonlinear) bond kinematics, internal force and potential energy.
 
 With eta = u_j - u_i and the deformed bond y = xi + eta, the extension is e = |y| - |xi| and
-the stretch s = e / |xi| (seed 002 eq 1-2; seed 004 eq 3.11). Each bond carries its intact
+the stretch s = e / |xi| (Dodwell 2019 eq 1-2; You 2023 eq 3.11). Each bond carries its intact
 fraction mu in [0, 1] (from ``bayespd.damage``; 1 when no damage law is present), held fixed
 while the force is taken: the force is -dV/du at the current damage state.
 
@@ -10,17 +10,15 @@ The material owns its law (``bayespd.materials``): ``at(params)`` asks it for it
 ``materials/pmb.py``, LPS's (with the floored weighted volume of a broken particle) in
 ``materials/lps.py``.
 
-Total potential energy (seed 002 eq 3): V(u) = sum of bond energies - p . u + (eps/2) u . u.
+Total potential energy (Dodwell 2019 eq 3): V(u) = sum of bond energies - p . u + (eps/2) u . u.
 For small u both forces equal the linearised -K u up to O(|u|^2).
 
 The force is written by hand, never through autograd of the energy: one sparse product with
 the signed bond-dof incidence D (eta = D u, rows (component, bond)), a per-bond scalar, and one
 with D^T (f = -D^T (t y / |y|)); it is differentiable (twice) in u, the moduli, the horizon and
-mu. The two CSR products replace four gathers and a scatter of the bond arrays: one step's
-kinematics, stretch and force of the notched 10k-particle plate take 5.0 ms instead of 7.0
-(one thread; benchmarks/README.md, "A crack zone ordered last"). On the CPU, with no gradient
-to record, the stretch and the PMB force are one compiled loop each (``bond_loops``, numba,
-optional: ~3 ms for both on that plate).
+mu. The two CSR products replace four gathers and a scatter of the bond arrays
+(benchmarks/README.md, "A crack zone ordered last"). On the CPU, with no gradient to record,
+the stretch and the PMB force are one compiled loop each (``bond_loops``, numba, optional).
 
 Rounding: the extension is evaluated as e = eta . (xi + y) / (|y| + |xi|) (= |y| - |xi|,
 since |y|^2 - |xi|^2 = eta . (y + xi)), which carries a relative rounding error of a few
@@ -73,7 +71,7 @@ class NonlinearBonds:
     def incidence(self, like: torch.Tensor) -> tuple:
         """(D, D^T) for tensors like ``like`` (its dtype and device): row a n_bonds + b of D
         holds +1 at the flat dof d j + a and -1 at d i + a of bond b = (i, j), so D u stacks
-        eta = u_j - u_i by component; scipy CSR on the CPU (2x faster than torch's CSR
+        eta = u_j - u_i by component; scipy CSR on the CPU (faster than torch's CSR
         product there), torch CSR elsewhere. Apply with ``product``."""
         key = ("incidence", like.dtype, like.device)
         if key not in self._geometry:
@@ -136,13 +134,13 @@ class NonlinearBonds:
         return self.at(params, u.dtype).force(u, intact)
 
     def energy(self, u, params: dict, intact=None, load=None, eps: float = 0.0):
-        """Total potential energy V(u) of seed 002 eq 3."""
+        """Total potential energy V(u) of Dodwell 2019 eq 3."""
         return self.at(params, u.dtype).energy(u, intact, load, eps)
 
 
 def _component_sum(p: torch.Tensor) -> torch.Tensor:
     """p[0] + p[1] (+ p[2]) for p of shape (dim, n_bonds), row by row: torch's reductions over
-    a short leading dimension (``sum(0)``, ``linalg.vector_norm(dim=0)``) are 2-25x slower
+    a short leading dimension (``sum(0)``, ``linalg.vector_norm(dim=0)``) are slower
     (benchmarks/README.md, "The 3D bond kernel")."""
     out = p[0] + p[1]
     for row in p[2:]:

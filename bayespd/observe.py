@@ -106,7 +106,7 @@ class ParticleObservation(LinearObservation):
 
 
 class OpeningObservation(LinearObservation):
-    """Crack openings u(above_p) - u(below_p) at stations p (the aperture of seed 000 eq 28),
+    """Crack openings u(above_p) - u(below_p) at stations p (the aperture of Turner 2015 eq 28),
     each face by barycentric interpolation. ``component`` keeps one component in the mask
     (e.g. 1: the y opening of a crack along x); None keeps all."""
 
@@ -193,7 +193,7 @@ def grid_points(origin, spacing, counts) -> np.ndarray:
 
 def edge_mask(particles: Particles, points, width: float) -> np.ndarray:
     """Mask (n, dim) of the points at least ``width`` inside the body: DIC loses data near the
-    free edges, and seed 001 (Fig. 9, Table 4) drops bands of width k h along every edge.
+    free edges, and Delorme 2018 (Fig. 9, Table 4) drops bands of width k h along every edge.
 
     The body is the union of the particles' cells (squares or cubes of side h on a regular
     grid), so holes and notches have edges too; points outside the body are dropped.

@@ -22,7 +22,7 @@ class Scene:
     horizon ``delta``) and an optional ``load`` factor scaling every load. Each may be a
     tensor that requires grad: the gradient costs one extra solve with the same factor.
 
-    ``eps`` >= 0 is the confinement of seed 002 eq 3, (eps/2) sum_i u_i.u_i: the operator on
+    ``eps`` >= 0 is the confinement of Dodwell 2019 eq 3, (eps/2) sum_i u_i.u_i: the operator on
     the free dofs is A = K_ff + eps I (direct solver only).
     """
 

@@ -1,7 +1,7 @@
 """Explicit dynamics and Langevin throughput: velocity Verlet steps per second and time per
 particle-step for a 2D bond-based (PMB, plane stress) plate, or with ``--dim 3`` a cube, with
 the geometrically exact force of ``bayespd.nonlinear`` (float64 and float32), and overdamped
-Langevin steps per second (2D; seed 002 eq 4; Euler-Maruyama and the semi-implicit theta = 1
+Langevin steps per second (2D; Dodwell 2019 eq 4; Euler-Maruyama and the semi-implicit theta = 1
 scheme, linearised force, white noise, one chain).
 
 Each timing is the best of ``--repeat`` runs of ``--steps`` steps after a warm-up (the machine

@@ -1,4 +1,4 @@
-"""Stochastic fracture realisations of the crack-ensemble plate (seed 002 eq 4 with damage,
+"""Stochastic fracture realisations of the crack-ensemble plate (Dodwell 2019 eq 4 with damage,
 ``bayespd.scenes.notched_plate``), as a worker of the ensemble runs them (``realise_batch``: one
 torch and one BLAS thread): wall time against error for each way of treating the operator.
 

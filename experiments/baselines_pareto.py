@@ -2,7 +2,7 @@
 three-point bending data.
 
 One scikit-fem field (bayespd.reference.three_point_bending, Q2 h = 0.5 mm) at the particles
-of a PD grid (spacing h, delta = m h) plus seeded Gaussian noise Sigma = 1e-4 mm (seed 001
+of a PD grid (spacing h, delta = m h) plus seeded Gaussian noise Sigma = 1e-4 mm (Delorme 2018
 §6.3's range). Each method in METHODS is one point: x = wall time (everything it needs after
 the data exist: building virtual works, solving, optimising or sampling; for the Bayesian
 fits ``fit``'s own wall time, without the posterior-predictive replay), y = max relative
@@ -44,7 +44,7 @@ from bayespd.models.elastic_plate import elastic_plate
 from vfm_three_point_bending import fields
 
 SEED = 7
-INIT = {"K": 5000.0, "G": 5000.0}  # seed 001 Table 2, start #1
+INIT = {"K": 5000.0, "G": 5000.0}  # Delorme 2018 Table 2, start #1
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""Brownian bias (seed 002 eqs 3-4): recover K, G, delta, eta, sigma from stationary frames
+"""Brownian bias (Dodwell 2019 eqs 3-4): recover K, G, delta, eta, sigma from stationary frames
 (1 vs several: eta / sigma separability) and K, G, delta, eta, sigma_c (, length) from
 Langevin trajectories. Writes runs/brownian_bias/ (metrics.json, brownian_bias.png).
 

@@ -1,4 +1,4 @@
-"""Posterior-predictive crack ensemble of a ~10k-particle notched plate (seed 002 eq 4 with
+"""Posterior-predictive crack ensemble of a ~10k-particle notched plate (Dodwell 2019 eq 4 with
 damage) and its scale-out: the material (K, s0) is calibrated on a small coupon by
 ``bayespd calibrate`` (Laplace; s0 keeps its prior: elastic data do not inform it), then the
 crack ensemble runs over a local process pool of 2 workers, and a subset over Dask
@@ -34,7 +34,7 @@ H, STEPS = 1.0, 50
 
 
 def observed_crack(scene, side, K, s0):
-    """The 'observed' crack: the deterministic quasi-static path (seed 004 §5.2) at the
+    """The 'observed' crack: the deterministic quasi-static path (You 2023 §5.2) at the
     calibrated K and the nominal s0 on the same plate."""
     body = plate_body(side, H, 3, K)
     qs = quasi_static(body, scene.load_factors, CriticalStretch(s0))

@@ -1,5 +1,5 @@
 """Crack-path distribution of a pre-notched plate in mode I tension under Brownian forcing
-(seed 002 eq 4): a deterministic quasi-static run (seed 004 §5.2) gives the straight crack;
+(Dodwell 2019 eq 4): a deterministic quasi-static run (You 2023 §5.2) gives the straight crack;
 stochastic realisations give a damage-probability map, crack paths and crack lengths.
 Writes runs/crack_paths/ (metrics.json, realisations.nc, PNG figures).
 
@@ -116,7 +116,7 @@ def save(out, body, qs, qs_path, qs_lengths, runs, rows, probability):
          "qs_phi": ("particle", qs.damage[-1]),
          "qs_path": (("qs_point", "component"), qs_path)},
         coords={"realisation": seeds, "component": comp},
-        attrs={"description": "crack paths of a notched plate under Brownian forcing (seed 002 eq 4)",
+        attrs={"description": "crack paths of a notched plate under Brownian forcing (Dodwell 2019 eq 4)",
                "units": "mm, N", "threshold": THRESHOLD, "path_threshold": PATH_THRESHOLD})
     with atomic_path(out / "realisations.nc") as tmp:
         ds.to_netcdf(tmp, engine="h5netcdf")

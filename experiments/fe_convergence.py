@@ -1,5 +1,5 @@
 """Verification of the LPS forward model against a converged finite-element peer (issue 3):
-seed 001's three-point bending beam (2D plane stress, §4.1/§6.1) and a 3D cantilever.
+Delorme 2018's three-point bending beam (2D plane stress, §4.1/§6.1) and a 3D cantilever.
 
 Errors are relative L2 norms of u_PD - u_FE at the PD particles farther than MARGIN from the
 load and support regions. Two FE peers per problem: the isotropic solid (the physics), and

@@ -1,4 +1,4 @@
-"""Seed 000 §4.2 with uncertainty: the GMRF posterior of mu(x) (models/heterogeneous_field.py)
+"""Turner 2015 §4.2 with uncertainty: the GMRF posterior of mu(x) (models/heterogeneous_field.py)
 against the Tikhonov map and the truth mu(x) = gamma_mu r mu_0 + mu_0 (eq 27; k(x) of eq 26 known).
 
 The §4.1 square at h = 100 (121 unknowns), data from a grid twice as fine (h = 50, same horizon)

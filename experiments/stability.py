@@ -11,10 +11,10 @@ names the fix. Writes runs/stability/ (metrics.json, stability.png).
 (c) delta/h = 1.5 ... 10: patch test (solve accuracy) and, bond-based, a quadratic
     manufactured solution with the classical body force (model error: the lattice quadrature
     of the PD operator); set-up + solve time.
-(d) a particle isolated by damage: eps > 0 (seed 002 eq 3) keeps A = K(mu) + eps I solvable;
+(d) a particle isolated by damage: eps > 0 (Dodwell 2019 eq 3) keeps A = K(mu) + eps I solvable;
     eps = 0 must be refused.
 (e) float32 vs float64 in explicit dynamics (velocity Verlet, exact PMB force).
-(f) overdamped Langevin (seed 002 eq 4) at dt = 100x the explicit limit: theta = 1/2 keeps
+(f) overdamped Langevin (Dodwell 2019 eq 4) at dt = 100x the explicit limit: theta = 1/2 keeps
     the stationary law eta A^-1; Euler-Maruyama must be refused.
 
 Forward-error bound used throughout: a backward-stable direct solve (Cholesky) has

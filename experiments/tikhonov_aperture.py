@@ -1,4 +1,4 @@
-"""Seed 000 §5 (eq 28, Figs. 10, 11): invert the load F_y from observed crack apertures.
+"""Turner 2015 §5 (eq 28, Figs. 10, 11): invert the load F_y from observed crack apertures.
 
 The paper makes the observations with a critical-stretch damage model (s0 = 0.001) in the
 forward problem, and inverts "based on the displacement of the material points without having

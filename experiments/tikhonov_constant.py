@@ -1,4 +1,4 @@
-"""Seed 000 §4.1 (Table 1, Fig. 3): constant k = 666.67, mu = 400 on the 1000 x 1000 square
+"""Turner 2015 §4.1 (Table 1, Fig. 3): constant k = 666.67, mu = 400 on the 1000 x 1000 square
 (11 x 11 cells), bottom edge fixed, F = (1000, 1000) on the top edge, inverted from (100, 100)
 without regularisation. Verification target: relative error <= 1e-8 on manufactured data made
 by the same model (same-model data is what a verification needs: it checks the adjoint and the
@@ -67,7 +67,7 @@ def figure(out, histories):
     for name, h in histories.items():
         ax.semilogy(np.arange(1, len(h) + 1), h, marker="o", ms=3, label=name)
     ax.set_xlabel("iteration")
-    ax.set_ylabel("objective J (seed 000 eq 12)")
+    ax.set_ylabel("objective J (Turner 2015 eq 12)")
     ax.set_title("§4.1 constant k, mu from (100, 100)")
     ax.legend()
     fig.savefig(out / "convergence.png", dpi=110)

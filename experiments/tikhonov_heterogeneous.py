@@ -1,4 +1,4 @@
-"""Seed 000 §4.2 (Figs. 4, 5): invert the shear-modulus field mu(x) = gamma_mu r mu_0 + mu_0
+"""Turner 2015 §4.2 (Figs. 4, 5): invert the shear-modulus field mu(x) = gamma_mu r mu_0 + mu_0
 (eq 27; k(x) = -gamma_k r k_0 + k_0 of eq 26 is known) on the §4.1 square, one value per cell
 (P = 121), from mu = mu_0 everywhere. Paper: max error 1.2 %; target <= 0.5 % on same-model data,
 with run time and iterations. Then data from a grid twice as fine plus 1 % noise, regularised

@@ -1,13 +1,13 @@
-"""Seed 001 (PD Virtual Fields Method) reproduced on a scikit-fem three-point bending field.
+"""Delorme 2018 (PD Virtual Fields Method) reproduced on a scikit-fem three-point bending field.
 
 FE peer: bayespd.reference.three_point_bending (Q2, h = 0.5 mm graded; pin + roller patches,
 load as a body force on a top patch; plane stress, E = 4000, nu = 0.3), evaluated at the
-particles of a PD grid (h = 0.5 mm): no inverse crime. Seed 001 used point supports; with
+particles of a PD grid (h = 0.5 mm): no inverse crime. Delorme 2018 used point supports; with
 patches its eqs 27-28 are not admissible, so we use them cleared off the patches
 (virtual_fields.bending_fields) and add interior bumps (virtual_fields.interior_bumps) that
 see neither the free surfaces nor missing edge data.
 
-Sections: m = delta/h study (seed 001 Fig. 7) for both partial-volume ramps, with the
+Sections: m = delta/h study (Delorme 2018 Fig. 7) for both partial-volume ramps, with the
 lattice's cubic anisotropy (``reference.lattice``), which sets the K error; Table 2 (closed form and Gauss-Newton from
 the paper's starts), Table 3 (noise, Monte-Carlo interval per Sigma, the Cramer-Rao bound,
 and the bias-variance trade-off of noise-optimal fields; then at h = 0.25 mm, the issue's
@@ -38,7 +38,7 @@ from bayespd.reference import three_point_bending as tpb
 from bayespd.reference.lattice import lattice_stiffness
 
 H = 0.5
-FINE_H = 0.25  # seed 001's finer spacing: Table 3 again with 4x the particles
+FINE_H = 0.25  # Delorme 2018's finer spacing: Table 3 again with 4x the particles
 FINE_CLEARANCES = [1.0, 1.5, 2.0, 3.0]  # mm from every edge where the noise-optimal fields stop
 SIGMAS = [0.0, 0.5e-4, 1.0e-4, 1.5e-4, 2.0e-4, 2.5e-4]
 BANDS = [0.0, 0.25, 0.5, 0.75, 1.0, 1.25]
@@ -48,7 +48,7 @@ RULES = ("linear", "smooth")  # partial-volume ramps (bayespd.bonds.partial_volu
 
 
 def fields(delta: float, which: str):
-    """'paper': seed 001's two fields cleared off the patches; 'interior': the first of them
+    """'paper': Delorme 2018's two fields cleared off the patches; 'interior': the first of them
     (it carries the load's work) plus 6 x 1 cells of interior bumps (2 delta + 1 mm clear of
     every edge); 'bumps': the interior bumps only (no data within 2 delta + 1 mm of an edge)."""
     paper = vf.bending_fields(tpb.LENGTH, tpb.WIDTH, tpb.SPAN, origin=(tpb.LENGTH / 2, 0),
@@ -172,7 +172,7 @@ def interior_weight(clear: float):
 
 
 def noise_optimal_interior(scene, optimal, delta: float, clear: float) -> VirtualWork:
-    """Seed 001 eq 27 (it carries the load's work) plus the noise-optimal fields times
+    """Delorme 2018 eq 27 (it carries the load's work) plus the noise-optimal fields times
     ``interior_weight(clear)``: they see neither the patches nor the free surfaces."""
     weight = interior_weight(clear)
     return VirtualWork(scene, fields(delta, "paper")[:1] + [vf.scaled(f, weight) for f in optimal], {"delta": delta})
@@ -192,7 +192,7 @@ def trade_off(name: str, work, u, truth, draws: int, rng) -> dict:
 
 def field_sets(scene, u, work, truth, draws: int) -> dict:
     """At the largest Sigma, the bias-variance trade-off of three field sets: 'interior'
-    (Table 2's), 'interior_noise_optimal' (seed 001 eq 27 plus the noise-optimal fields
+    (Table 2's), 'interior_noise_optimal' (Delorme 2018 eq 27 plus the noise-optimal fields
     multiplied by a C1 cut-off that vanishes 2 delta + 1 mm from every edge), and
     'noise_optimal' (those fields alone: one Gauss-Newton step of maximum likelihood on
     every displacement, bias included)."""
@@ -210,7 +210,7 @@ def field_sets(scene, u, work, truth, draws: int) -> dict:
 
 
 def table3_fine(fe, m: int, rule: str, draws: int) -> dict:
-    """Table 3 at h = FINE_H (same m and ramp): seed 001 eq 27 plus the noise-optimal fields
+    """Table 3 at h = FINE_H (same m and ramp): Delorme 2018 eq 27 plus the noise-optimal fields
     (made at the closed-form estimate of the interior fields) weighted to vanish
     ``clear`` from every edge. The clearances of FINE_CLEARANCES trade the model-form bias
     near the surfaces against noise (Monte-Carlo at the largest Sigma); the one with the
@@ -312,7 +312,7 @@ def figure(out, ms_rows, t3, t3f, t4):
                        label=f"|K error| (interior), {rule}")
         ax[0].semilogy(m, [abs(r["lattice_anisotropy"]) for r in rows], ":", color=f"C{k}",
                        label=f"|lattice anisotropy|, {rule}")
-    ax[0].set(xlabel="m = delta / h (h = 0.5 mm)", title="seed 001 Fig. 7: residual vs m")
+    ax[0].set(xlabel="m = delta / h (h = 0.5 mm)", title="Delorme 2018 Fig. 7: residual vs m")
     ax[0].legend(fontsize=8)
     s = np.array([r["sigma"] for r in t3])
     series = [(t3, "K", "0.6", f"h = {H}, interior fields"), (t3f, "K", "C0", f"h = {FINE_H}, noise-optimal interior"),
@@ -355,7 +355,7 @@ def main(quick: bool):
     ms = [2, 3, 4, 5, 6] if quick else [2, 3, 4, 5, 6, 7, 8]
     print("m study (h = 0.5 mm)")
     ms_rows = m_study(fe, ms, RULES)
-    best = min(ms_rows, key=lambda r: r["interior"]["phi_at_truth"])  # seed 001's rule, over both ramps
+    best = min(ms_rows, key=lambda r: r["interior"]["phi_at_truth"])  # Delorme 2018's rule, over both ramps
     m, rule = best["m"], best["rule"]
     print(f"m = {m}, {rule} partial volumes (smallest Phi at the FE moduli: the paper's rule)")
     scene, u, work, basis_s = setup(m, fe, rule=rule)
@@ -402,7 +402,7 @@ def main(quick: bool):
         "settings": {"quick": quick, "h": H, "m": m, "rule": rule, "delta": m * H, "fe_mesh": tpb.REFERENCE_MESH,
                      "fe_dofs": fe.n_dofs, "particles": scene.particles.n, "seed": SEED,
                      "supports": "pin + roller patches (4 x 2 mm), load as body force on a 4 x 2 mm top patch",
-                     "fields": "interior = seed 001 eq 27 cleared off the patches + 12 interior bumps; "
+                     "fields": "interior = Delorme 2018 eq 27 cleared off the patches + 12 interior bumps; "
                                "paper = eqs 27-28 cleared off the patches",
                      "truth": {"K": truth["K"], "G": truth["G"]}, "backend": bp.sparse.default_backend()},
         "targets": targets,

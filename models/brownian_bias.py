@@ -1,4 +1,4 @@
-"""Brownian forcing of seed 002 eq 4 read as a model-discrepancy term (see
+"""Brownian forcing of Dodwell 2019 eq 4 read as a model-discrepancy term (see
 ``bayespd.infer.likelihoods`` for the derivations).
 
 Stationary frames (``stationary``): F independent frames of the elastic body at equilibrium
@@ -25,7 +25,7 @@ import pyro
 import pyro.distributions as dist
 import torch
 
-from bayespd.infer.likelihoods import NoiseCovariance, StationaryMarginal, euler_maruyama_transition
+from bayespd.infer import NoiseCovariance, StationaryMarginal, euler_maruyama_transition
 from bayespd.models.elastic_plate import default_priors
 
 

@@ -1,4 +1,4 @@
-"""Critical stretch s0 of the smoothed damage law (seed 004 eq 3.10) from crack openings
+"""Critical stretch s0 of the smoothed damage law (You 2023 eq 3.10) from crack openings
 observed during a quasi-static test.
 
     s0    ~ LogNormal(log nominal, 0.5)            (a factor ~1.6 either way at one sd)

@@ -1,4 +1,4 @@
-"""A heterogeneous modulus field log mu(x) as a Gaussian Markov random field (seed 000 §4.2).
+"""A heterogeneous modulus field log mu(x) as a Gaussian Markov random field (Turner 2015 §4.2).
 
     m      ~ Normal(log nominal, 0.5)              (the field's level, log scale)
     s      ~ LogNormal(log 0.1, 1)                 (rms amplitude of log mu: ~10 %, a factor e either way)
@@ -14,13 +14,13 @@ form only with the hyper-parameters fixed (e.g. by ``pyro.poutine.condition``): 
 free its joint density is unbounded (log mu -> m, s -> 0), so it has no MAP and Laplace fails,
 and NUTS meets the same funnel; the whitened form has neither problem.
 
-``field`` names the scene parameter that varies (default "G", seed 000's mu); the others
+``field`` names the scene parameter that varies (default "G", Turner 2015's mu); the others
 (e.g. K of eq 26 and delta) are given in ``fixed``. Every particle carries one value of the
 field: the gradient of the log-likelihood with respect to all of them costs one adjoint
 solve (``bp.Scene.solve`` is an adjoint-differentiable solve). Sites: ``log_<field>`` (N,),
 ``<field>_mean``, ``amplitude``, ``length``, ``sigma``; ``<field>`` (N,) is deterministic.
 
-At fixed (m, s, ell, sigma) the MAP of ``log_<field>`` is the Tikhonov solution of seed 000
+At fixed (m, s, ell, sigma) the MAP of ``log_<field>`` is the Tikhonov solution of Turner 2015
 eq 12 with psi = tau(ell, s), L = gmrf.square_root(ell), centred at m (``tikhonov_settings``).
 """
 from __future__ import annotations
@@ -33,7 +33,7 @@ import pyro.distributions as dist
 import torch
 from pyro.distributions import constraints
 
-from bayespd.gmrf import GMRF
+from bayespd import GMRF
 from bayespd.models.observations import check_shape
 from bayespd.models.priors import choose, fixed_params, positive, positive_support
 

@@ -1,8 +1,8 @@
-"""Posterior of the load from observed crack apertures (seed 000 §5, eq 28).
+"""Posterior of the load from observed crack apertures (Turner 2015 §5, eq 28).
 
 The scene is the linear PD body with its crack as observed (the bonds across it removed:
 ``bp.precrack``), under unit loads (e.g. ``bp.Load(top, (0, 1))``) scaled by the load factor;
-the apertures are linear in it (seed 000 §5 inverts "based on the displacement of the
+the apertures are linear in it (Turner 2015 §5 inverts "based on the displacement of the
 material points without having to accommodate the damage model"). Eq 28's least squares is
 the likelihood of Gaussian aperture errors:
 

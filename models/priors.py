@@ -12,7 +12,7 @@ import math
 import pyro.distributions as dist
 import torch
 
-from bayespd.bonds import check_horizon
+from bayespd import check_horizon
 from bayespd.infer import ScaledBeta, check_priors
 
 

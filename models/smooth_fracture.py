@@ -1,4 +1,4 @@
-"""Quasi-static loading of a bond-based body under the smoothed damage law (seed 004 eq 3.10),
+"""Quasi-static loading of a bond-based body under the smoothed damage law (You 2023 eq 3.10),
 differentiable in the critical stretch s0: the forward model of ``models/damage_criterion.py``.
 
 Small-strain kinematics: the extension of bond b is e_b = n_b . (u_j - u_i) = (B u)_b, its
@@ -22,9 +22,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from bayespd.boundary import Constraints
-from bayespd.nonlinear import NonlinearBonds
-from bayespd.linalg.sparse import ConvergenceError
+from bayespd import Constraints, ConvergenceError, NonlinearBonds
 
 
 class SmoothFracture:

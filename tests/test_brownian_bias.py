@@ -1,4 +1,4 @@
-"""Brownian-bias likelihoods (seed 002 eqs 3-4): the stationary marginal and the Euler-Maruyama
+"""Brownian-bias likelihoods (Dodwell 2019 eqs 3-4): the stationary marginal and the Euler-Maruyama
 transition against dense references, their gradients, and recovery of eta from simulated data.
 
 The recovery tests use data from the calibrated model itself (same discretisation): they check

@@ -1,4 +1,4 @@
-"""Stochastic fracture (seed 002 eq 4 with damage): the noise -> 0 limit is the quasi-static
+"""Stochastic fracture (Dodwell 2019 eq 4 with damage): the noise -> 0 limit is the quasi-static
 path, a seed reproduces its run bit for bit, large noise makes paths differ, and the
 rate-dependent damage ODE breaks a bond when its damage clock predicts."""
 import numpy as np
@@ -103,7 +103,7 @@ def test_correlated_noise_runs_and_is_checked(plate):
 
 
 def test_damage_ode_breaks_when_its_clock_runs_out():
-    """Damage ODE of seed 002 §2.1 (logistic, lam = exp(-k s_c)): z = logit(alpha) falls by
+    """Damage ODE of Dodwell 2019 §2.1 (logistic, lam = exp(-k s_c)): z = logit(alpha) falls by
     tau = sum_n exp(k (s_n - s_c)) dt, so the most stretched bond of a bar (s_n = lambda_n
     s_1 from the elastic solve, the others barely damaged) breaks at the first step with
     tau > logit(alpha0). The driver (vanishing noise) breaks its first bond at that step."""

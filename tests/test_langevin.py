@@ -1,4 +1,4 @@
-"""Overdamped Langevin dynamics (seed 002 eq 4): deterministic limit, invariant law,
+"""Overdamped Langevin dynamics (Dodwell 2019 eq 4): deterministic limit, invariant law,
 strong/weak order of Euler-Maruyama, stiff stability, correlated (Karhunen-Loeve) noise."""
 import re
 
@@ -16,7 +16,7 @@ ETA, SIGMA = 0.5, 0.7  # eta != 1 and sigma != 1, so a wrong scaling shows
 
 @pytest.fixture(scope="module")
 def plate():
-    """24 dofs: a 4 x 3 bond-based plate, no Dirichlet, confinement eps = 0.2 (seed 002 eq 3),
+    """24 dofs: a 4 x 3 bond-based plate, no Dirichlet, confinement eps = 0.2 (Dodwell 2019 eq 3),
     cond(A) ~ 11."""
     p = bp.grid_2d(4, 3, 1.0)
     mat = bp.BondBased(p, bp.find_bonds(p, 2.0))

@@ -1,4 +1,4 @@
-"""Quasi-static loading with bond breaking (seed 004 §5.2): the small-strain limit is the
+"""Quasi-static loading with bond breaking (You 2023 §5.2): the small-strain limit is the
 linear solve, a bar breaks at the load predicted from its elastic stretch, the reaction of a
 cut bar is zero, damage is irreversible, detached pieces leave the system non-singular."""
 import numpy as np
@@ -110,7 +110,7 @@ def test_force_control_stops_when_the_loaded_piece_comes_loose():
 @pytest.mark.parametrize("eps", [0.0, 1.0])
 def test_a_detached_particle_leaves_the_system_nonsingular(eps):
     """A free particle whose bonds are all broken: eps = 0 drops its dofs (it keeps its
-    displacement), eps > 0 keeps them (confinement, seed 002 eq 3: it returns to 0)."""
+    displacement), eps > 0 keeps them (confinement, Dodwell 2019 eq 3: it returns to 0)."""
     mat, params, bcs, body = bar()
     body = LoadedBody(mat, params, bcs, eps=eps)
     k = int(np.flatnonzero(body.particles.box([9, 1], [11, 3]))[0])

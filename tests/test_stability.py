@@ -116,7 +116,7 @@ def test_float32_explicit_dynamics_drift_is_rounding_sized():
 
 
 def test_langevin_at_100x_the_explicit_limit():
-    """Seed 002 eq 4 on an LPS plate with eps (cond(A) ~ 70) at dt = 100x 2 eta / lambda_max:
+    """Dodwell 2019 eq 4 on an LPS plate with eps (cond(A) ~ 70) at dt = 100x 2 eta / lambda_max:
     Euler-Maruyama is refused with the limit and the fix; theta = 1/2 samples eta A^-1: every
     mode's variance ratio within 4.5 SE (sqrt(2/B), B = 2000 i.i.d. chains; family-wise false
     alarm <= 72 x 6.8e-6) and the trace within 4.5 SE, a test that detects a uniform variance

@@ -1,4 +1,4 @@
-"""Tikhonov inversion (seed 000 eq 12): recovery of constants and fields, one adjoint solve per
+"""Tikhonov inversion (Turner 2015 eq 12): recovery of constants and fields, one adjoint solve per
 gradient, Hessian-vector products, and refused input (the choice of psi:
 tests/inverse/test_psi_choice.py)."""
 import numpy as np
@@ -36,7 +36,7 @@ def test_regularisation_pulls_towards_reference():
 
 @pytest.fixture(scope="module")
 def square():
-    """Seed 000 §4.1: the 11 x 11 square and its manufactured data."""
+    """Turner 2015 §4.1: the 11 x 11 square and its manufactured data."""
     scene = square_scene()
     return scene, scene.observe(scene.solve(dict(TRUTH, delta=DELTA))).detach()
 

@@ -1,4 +1,4 @@
-"""PD Virtual Fields Method (seed 001): patch tests on PD-generated fields (same model ->
+"""PD Virtual Fields Method (Delorme 2018): patch tests on PD-generated fields (same model ->
 exact moduli), closed form vs optimiser, linearity in the PD constants, bad input."""
 import numpy as np
 import pytest
@@ -15,7 +15,7 @@ H, DELTA = 2.0, 6.0  # coarse beam: 1024 particles
 
 
 def beam_fields(delta=DELTA):
-    """Seed 001's two fields, cleared off the support patches, plus interior bumps."""
+    """Delorme 2018's two fields, cleared off the support patches, plus interior bumps."""
     paper = vf.bending_fields(tpb.LENGTH, tpb.WIDTH, tpb.SPAN, origin=(tpb.LENGTH / 2, 0),
                               clear_half_width=tpb.PATCH_WIDTH / 2, clear_depth=tpb.PATCH_DEPTH)
     return paper + vf.interior_bumps((0, 0), (tpb.LENGTH, tpb.WIDTH), (2, 1), 2 * delta + 1)
@@ -41,7 +41,7 @@ def test_closed_form_exact_on_pd_field(beam, n_fields):
     res = identify(work, u)
     assert rel(res.params["K"], truth["K"]) < 1e-10 and rel(res.params["G"], truth["G"]) < 1e-10
     assert res.phi < 1e-12 and res.evaluations == 0
-    # the external work of seed 001 eq 31 for the cleared field: F (S/2 - a - mean |x1|)
+    # the external work of Delorme 2018 eq 31 for the cleared field: F (S/2 - a - mean |x1|)
     assert float(work.external[0]) == pytest.approx(tpb.FORCE * (tpb.SPAN / 2 - 2.0 - 1.0), rel=1e-12)
 
 
@@ -105,7 +105,7 @@ def test_constants_round_trip(plane, dim):
 
 def test_refuses_field_not_vanishing_on_supports(beam):
     scene, _, _ = beam
-    paper = vf.seed001_fields(tpb.LENGTH, tpb.WIDTH, tpb.SPAN, origin=(tpb.LENGTH / 2, 0))
+    paper = vf.delorme_fields(tpb.LENGTH, tpb.WIDTH, tpb.SPAN, origin=(tpb.LENGTH / 2, 0))
     with pytest.raises(ValueError, match="not kinematically admissible.*clear_half_width"):
         VirtualWork(scene, paper, {"delta": DELTA})
 

@@ -1,7 +1,7 @@
-"""Posterior-predictive crack ensembles (seed 002 §3: "a distribution of crack paths").
+"""Posterior-predictive crack ensembles (Dodwell 2019 §3: "a distribution of crack paths").
 
 ``ensemble(tree, scene, n, store=DIR)`` draws pairs (posterior draw, Brownian seed), runs the
-stochastic fracture model of seed 002 eq 4 for each (``scene.realise``) and
+stochastic fracture model of Dodwell 2019 eq 4 for each (``scene.realise``) and
 aggregates the results (``stats.aggregate``). Two ensembles are run:
 
 * ``posterior``: realisation i takes draw d_i of the fitted tree's ``posterior`` group and

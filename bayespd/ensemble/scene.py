@@ -1,6 +1,6 @@
 """A fracture scene for posterior-predictive ensembles, and one realisation of it.
 
-A ``FractureScene`` says how a parameter draw becomes a stochastic fracture run (seed 002
+A ``FractureScene`` says how a parameter draw becomes a stochastic fracture run (Dodwell 2019
 eq 4 with the damage law of eq 2 or 5, ``bayespd.solvers.fracture``) and what to measure:
 
 * ``build(params) -> StochasticFracture``: a picklable callable (a module-level function or

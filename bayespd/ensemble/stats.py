@@ -1,7 +1,7 @@
 """Aggregate crack-ensemble realisations into one ``xarray.Dataset``.
 
 Per realisation (dim ``realisation``, labelled by ``ensemble`` and ``index``): the damage
-index phi (seed 002 eq 5's damage summed per particle), crack path, the time series of the run,
+index phi (Dodwell 2019 eq 5's damage summed per particle), crack path, the time series of the run,
 the crack length at the end of each load step, the path's offset across the expected crack
 line at ``station``s along it, the scalar outcomes and the inputs (parameters, draw, seed).
 
@@ -134,7 +134,7 @@ def aggregate(results, scene, seed: int) -> xr.Dataset:
         ds["observed_path"] = (("observed_point", "component"), np.asarray(scene.observed_path, dtype=np.float64))
     failed = [r for r in results if "error" in r[2]]
     ds.attrs.update({
-        "description": "posterior-predictive crack ensemble (seed 002 eq 4 with damage)",
+        "description": "posterior-predictive crack ensemble (Dodwell 2019 eq 4 with damage)",
         "threshold": scene.threshold, "path_threshold": scene.path_threshold, "seed": int(seed),
         "origin": [float(v) for v in scene.origin], "direction": [float(v) for v in scene.direction],
         "failure_length": np.nan if scene.failure_length is None else scene.failure_length,

@@ -4,6 +4,7 @@ from .checks import check_priors
 from .datatree import load, modes, save, summary, to_inference_data
 from .fit import METHODS, fit, register
 from .laplace import Laplace, NotPositiveDefiniteHessian
+from .likelihoods import NoiseCovariance, StationaryMarginal, euler_maruyama_transition
 from .mcmc import ChainDivergedError
 from .method import Draws, Method
 from .priors import ScaledBeta
@@ -12,4 +13,5 @@ from .svi import SVI
 
 __all__ = ["fit", "NUTS", "HMC", "SVI", "Laplace", "Method", "Draws", "METHODS", "register",
            "to_inference_data", "save", "load", "summary", "modes", "ScaledBeta", "check_priors",
-           "NotPositiveDefiniteHessian", "ChainDivergedError"]
+           "NotPositiveDefiniteHessian", "ChainDivergedError", "NoiseCovariance", "StationaryMarginal",
+           "euler_maruyama_transition"]

@@ -1,4 +1,4 @@
-"""Exact Gaussian likelihoods of the Brownian-bias (overdamped Langevin) model, seed 002 eqs 3-4.
+"""Exact Gaussian likelihoods of the Brownian-bias (overdamped Langevin) model, Dodwell 2019 eqs 3-4.
 
     dU = -eta^-1 C grad V(U) dt + sqrt(2 C) dB,   V(U) = U^T A U / 2 - p^T U,   A = K_ff + eps I
 
@@ -112,7 +112,7 @@ class NoiseCovariance:
 def euler_maruyama_transition(scene, params: dict, eta, C: NoiseCovariance, dt: float,
                               previous: torch.Tensor) -> dist.Distribution:
     """U_{n+1} | U_n ~ N(U_n + (dt / eta) C (p - A U_n), 2 dt C) for each row U_n of
-    ``previous`` (T, n_free): the Euler-Maruyama step of seed 002 eq 4."""
+    ``previous`` (T, n_free): the Euler-Maruyama step of Dodwell 2019 eq 4."""
     A = scene.stiffness_values(params)
     AU = scene.constraints.pattern.matvec(A, previous.T).T
     drift = C.matmul(scene.free_load(params) - AU)

@@ -90,7 +90,7 @@ def chain_kl(M, c, Sigma, B, a, Q, u0, steps: int) -> torch.Tensor:
 
 
 def euler_maruyama_chain(scene, params: dict, eta, C, dt: float, substeps: int = 1):
-    """(M, c, Sigma) of ``substeps`` Euler-Maruyama steps of dt / substeps of seed 002 eq 4
+    """(M, c, Sigma) of ``substeps`` Euler-Maruyama steps of dt / substeps of Dodwell 2019 eq 4
     in the elastic regime, U_{n+1} = M U_n + c + N(0, Sigma), dense on the free dofs
     (each step U + (h / eta) C (p - A U) + N(0, 2 h C), h = dt / substeps); ``C`` a
     ``likelihoods.NoiseCovariance``."""

@@ -1,4 +1,4 @@
-"""Choice of the Tikhonov weight psi (seed 000 eq 12 leaves it "tunable").
+"""Choice of the Tikhonov weight psi (Turner 2015 eq 12 leaves it "tunable").
 
 * Discrepancy principle (Morozov): the psi whose residual rms equals tau times the noise sd,
   found by a sweep and bisection in log psi (the residual grows with psi).

@@ -1,6 +1,6 @@
-"""Regularisation operators L for the Tikhonov term psi/2 ||L (z - z_ref)||^2 (seed 000 eq 12).
+"""Regularisation operators L for the Tikhonov term psi/2 ||L (z - z_ref)||^2 (Turner 2015 eq 12).
 
-``None`` / ``"identity"``: L = I (seed 000's choice, which penalises the parameters
+``None`` / ``"identity"``: L = I (Turner 2015's choice, which penalises the parameters
 themselves). ``"gradient"``: a graph gradient over neighbour pairs in grid units,
 (L z)_b = (z_j - z_i) h / |xi_b| for every pair closer than ``radius`` (default 1.5 h: the 8
 nearest neighbours on a square grid), which penalises roughness of a per-particle field and

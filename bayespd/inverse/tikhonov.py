@@ -1,9 +1,9 @@
-"""Tikhonov-regularised least squares with adjoint gradients (seed 000 eqs 12, 18-19).
+"""Tikhonov-regularised least squares with adjoint gradients (Turner 2015 eqs 12, 18-19).
 
     J(z) = 1/2 sum_obs mask (H u(p) - y)^2 / sigma^2 + sum_k psi_k/2 ||L_k (z_k - z_ref,k)||^2,
 
 with p = exp(z): the unknowns are log-parameters, so positivity comes for free. Each unknown is
-a scalar or a per-particle field (seed 000 eq 17: P = 121 values of mu(x) in §4.2). Seed 000
+a scalar or a per-particle field (Turner 2015 eq 17: P = 121 values of mu(x) in §4.2). Turner 2015
 eq 12 penalises psi/2 int k^2 (natural units, centred at zero); we centre the penalty at a
 reference and apply it to log-parameters, so psi is dimensionless and L = "gradient"
 (``bayespd.inverse.regularization``) penalises relative roughness of a field.
@@ -37,7 +37,7 @@ class TikhonovResult:
 
     ``misfit_norm`` = ||mask (H u - y)|| and ``penalty_norm`` = ||L (z - z_ref)|| (summed over
     unknowns in quadrature) are the two axes of the L-curve; ``history`` is J per iteration
-    (seed 000 figs 3 and 5)."""
+    (Turner 2015 figs 3 and 5)."""
 
     params: dict
     objective: float

@@ -1,7 +1,7 @@
-"""Peridynamic Virtual Fields Method (seed 001, Delorme et al.): moduli from a measured
+"""Peridynamic Virtual Fields Method (Delorme 2018): moduli from a measured
 displacement field without any forward solve.
 
-Principle of virtual work in PD (seed 001 eqs 23-24, discretised as eq 30): for a virtual
+Principle of virtual work in PD (Delorme 2018 eqs 23-24, discretised as eq 30): for a virtual
 field u* that vanishes on the constrained dofs (kinematically admissible, eq 29),
 
     W*_int + W*_ext = 0,   W*_int = sum_i sum_j f_v(x_j, x_i) . u*_i V_j V_i = -u*^T K u,
@@ -9,7 +9,7 @@ field u* that vanishes on the constrained dofs (kinematically admissible, eq 29)
 
 where K is the linearised LPS stiffness of ``bayespd.materials`` (sum_j f_v V_j V_i is the
 internal nodal force -(K u)_i) and f the scene's nodal loads. The extracted text of the paper
-garbles eq 30; the form above is derived from eqs 21 and 24a and is what we use. Seed 001's
+garbles eq 30; the form above is derived from eqs 21 and 24a and is what we use. Delorme 2018's
 eq 31 evaluates W*_ext for a point load; here the same sum runs over the loaded particles.
 
 Linearity (derived here, not stated in the paper): with the energy of ``materials/lps.py``,
@@ -18,7 +18,7 @@ Linearity (derived here, not stated in the paper): with the energy of ``material
     a_s = kappa - c G / d^2,   a_d = c G    (c = 8 in 2D, 15 in 3D; kappa = in-plane bulk),
 
 so K = a_s K_s + a_d K_d for homogeneous moduli, and W*_int is linear in the PD constants
-(a_s, a_d) (seed 001's alpha^d = 8G/q is a_d / m_i; its alpha^s, eqs 18-19/41, uses the 3D
+(a_s, a_d) (Delorme 2018's alpha^d = 8G/q is a_d / m_i; its alpha^s, eqs 18-19/41, uses the 3D
 split x theta / 3 of the extension and is another linear combination of the same two).
 The residual of eq 25 is then minimised exactly by linear least squares over any number of
 virtual fields (:func:`identify`); :func:`optimise` minimises it by Gauss-Newton with
@@ -92,7 +92,7 @@ def _describe(x, k):
 class VFMResult:
     params: dict                  # identified K, G (and any other estimated parameter)
     constants: tuple              # (a_s, a_d) at the estimate
-    phi: float                    # seed 001 eq 25 at the estimate
+    phi: float                    # Delorme 2018 eq 25 at the estimate
     residuals: list               # W*_int + W*_ext per virtual field (N mm)
     evaluations: int              # residual evaluations (0 for the closed form)
     wall_time_s: float
@@ -101,7 +101,7 @@ class VFMResult:
 
 
 class VirtualWork:
-    """Virtual works of a scene's virtual fields (seed 001 eqs 24, 30-31).
+    """Virtual works of a scene's virtual fields (Delorme 2018 eqs 24, 30-31).
 
     ``scene``: a ``bayespd.Scene`` (its material, Dirichlet constraints and loads);
     ``fields``: callables u*(x) -> (N, dim) (see ``virtual_fields``); ``fixed``: the params
@@ -152,7 +152,7 @@ class VirtualWork:
                     f"virtual field {k} is not kinematically admissible: it is non-zero on "
                     f"{int(bad.sum())} constrained dof(s) (e.g. {_describe(self.x, i)}, component "
                     f"{c}, u* = {v[i, c]:.3g}), where the unknown reactions would do work "
-                    "(seed 001 eq 29). Make it vanish on every Dirichlet region, e.g. "
+                    "(Delorme 2018 eq 29). Make it vanish on every Dirichlet region, e.g. "
                     "virtual_fields.bending_fields(..., clear_half_width=, clear_depth=) for "
                     "support patches, or multiply it by a weight that is zero there "
                     "(virtual_fields.scaled)")
@@ -222,7 +222,7 @@ class VirtualWork:
         return self.internal(u, params) + self.external
 
     def phi(self, residuals) -> float:
-        """Seed 001 eq 25: sqrt(sum_k r_k^2 / sum_k (W*_ext^(k))^2)."""
+        """Delorme 2018 eq 25: sqrt(sum_k r_k^2 / sum_k (W*_ext^(k))^2)."""
         r = torch.as_tensor(residuals)
         return float(torch.sqrt((r**2).sum() / (self.external**2).sum()))
 
@@ -235,7 +235,7 @@ class VirtualWork:
 
 def identify(work: VirtualWork, u, *, observed=None) -> VFMResult:
     """Closed-form PD-VFM: least squares over the virtual fields of W*_int(a) = -W*_ext,
-    i.e. the exact minimiser of seed 001's eq 25 over (a_s, a_d), mapped to (K, G)."""
+    i.e. the exact minimiser of Delorme 2018's eq 25 over (a_s, a_d), mapped to (K, G)."""
     start = time.perf_counter()
     work._refuse_no_external_work()
     A = work.internal_matrix(work.data(u, observed)).numpy()

@@ -1,10 +1,10 @@
-"""Virtual displacement fields for the PD Virtual Fields Method (seed 001 §4.2).
+"""Virtual displacement fields for the PD Virtual Fields Method (Delorme 2018 §4.2).
 
 A virtual field is any plain callable ``u_star(x) -> (N, dim)`` of reference positions
 ``x`` (N, dim) (numpy); :mod:`bayespd.inverse.vfm` evaluates it at the particles and checks
 that it is kinematically admissible for the scene it is used with.
 
-Coordinates: seed 001 puts the origin at mid-span on the bottom face (x1 along the beam, x2
+Coordinates: Delorme 2018 puts the origin at mid-span on the bottom face (x1 along the beam, x2
 up). The builders below take ``origin`` = where that point lies in the caller's frame (for
 ``bayespd.reference.three_point_bending``, whose origin is the bottom-left corner, it is
 ``(L/2, 0)``).
@@ -19,8 +19,8 @@ def _local(x, origin):
     return x[:, 0] - origin[0], x[:, 1] - origin[1]
 
 
-def seed001_fields(length: float, width: float, span: float, origin=(0.0, 0.0)):
-    """The two fields of seed 001 verbatim (eqs 27-28), for point supports at (+-S/2, 0):
+def delorme_fields(length: float, width: float, span: float, origin=(0.0, 0.0)):
+    """The two fields of Delorme 2018 verbatim (eqs 27-28), for point supports at (+-S/2, 0):
 
         u*(1) = (|x1| - S/2) e2,      u*(2) = (|x1| x1 x2 / (L W)) e1.
 
@@ -43,7 +43,7 @@ def seed001_fields(length: float, width: float, span: float, origin=(0.0, 0.0)):
 
 def bending_fields(length: float, width: float, span: float, origin=(0.0, 0.0),
                    clear_half_width: float = 0.0, clear_depth: float = 0.0):
-    """Seed 001's eqs 27-28 made to vanish on support patches |x1 -+ S/2| <= a, 0 <= x2 <= d
+    """Delorme 2018's eqs 27-28 made to vanish on support patches |x1 -+ S/2| <= a, 0 <= x2 <= d
     (a = ``clear_half_width``, d = ``clear_depth``; our adaptation, not in the paper):
 
         u*(1) = min(|x1| - (S/2 - a), 0) e2,
@@ -83,7 +83,7 @@ def scaled(field, weight):
 
 def bump(centre, radius, component: int):
     """A smooth (C1) bump along one axis: prod_a (1 - s_a^2)^2 on |s_a| < 1, s = (x - centre) /
-    radius, zero elsewhere (our addition to seed 001's fields).
+    radius, zero elsewhere (our addition to Delorme 2018's fields).
 
     Placed at least two horizons inside the free surfaces, a bump needs no data near them and
     sees no PD surface effect; with no load under it, W*_ext = 0 and its equation constrains

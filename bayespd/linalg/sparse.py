@@ -1,14 +1,14 @@
 """Differentiable sparse symmetric positive-definite solve (the adjoint is a solve, not a tape).
 
 ``solve(pattern, values, rhs)`` factorises K once; its backward solves K lambda = grad_u with
-the same factorisation (K is symmetric: seed 000 §3.3) and returns
+the same factorisation (K is symmetric: Turner 2015 §3.3) and returns
 
     grad_values[k] = -lambda[rows[k]] * u[cols[k]],   grad_rhs = lambda,
 
 computed from the index lists (never a dense n x n matrix). The general form, ``solve_form``,
 takes K(params) through its bilinear form v^T K(params) u, so a material can return
 grad_params = -d/dparams (lambda^T K u) matrix-free, at O(bonds) cost, without building the
-stiffness values' autograd graph (seed 000 eqs 14-19). The backward calls the same Function,
+stiffness values' autograd graph (Turner 2015 eqs 14-19). The backward calls the same Function,
 so second derivatives and Hessian-vector products exist.
 
 Backends: CHOLMOD (scikit-sparse) when importable, analysing the pattern once and

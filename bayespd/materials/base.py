@@ -185,7 +185,7 @@ class Material(ABC):
 
 
 class Force(ABC):
-    """A law's exact-kinematics force at one params (seed 002 eqs 2-3): ``force(u, intact,
+    """A law's exact-kinematics force at one params (Dodwell 2019 eqs 2-3): ``force(u, intact,
     components)``, ``strain_energy(u, intact)`` and ``energy(u, intact, load, eps)``;
     ``kin`` is the ``nonlinear.NonlinearBonds`` of the material."""
 
@@ -210,7 +210,7 @@ class Force(ABC):
         return -product(DT, D, fb).view(like.shape)
 
     def energy(self, u, intact=None, load=None, eps: float = 0.0):
-        """Strain energy - p . u + (eps/2) u . u (seed 002 eq 3)."""
+        """Strain energy - p . u + (eps/2) u . u (Dodwell 2019 eq 3)."""
         V = self.strain_energy(u, intact)
         if load is not None:
             V = V - (torch.as_tensor(load) * u).sum()

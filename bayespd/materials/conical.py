@@ -1,6 +1,6 @@
 """Bond-based material with a conical micromodulus c(|xi|) = c0 (1 - |xi|/delta)_+: stiff
 short bonds, soft long ones, so the bond stiffness falls continuously to zero at the horizon
-(Ha & Bobaru 2010's "conical" micromodulus; seed 002 eq 1 with c depending on |xi|).
+(Ha & Bobaru 2010's "conical" micromodulus; Dodwell 2019 eq 1 with c depending on |xi|).
 
 Calibration on the continuum family (as ``pmb``): an isotropic expansion u = eps x stretches
 every bond by s = eps, and W = 1/4 int c(r) omega(r) s^2 r dV must equal the classical density.

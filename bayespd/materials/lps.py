@@ -1,4 +1,4 @@
-"""Linear peridynamic solid (ordinary state-based LPS, seed 000 eqs 5-10, seed 001 eqs 18-19,
+"""Linear peridynamic solid (ordinary state-based LPS, Turner 2015 eqs 5-10, Delorme 2018 eqs 18-19,
 35-45): linearised stiffness, damaged stiffness and exact-kinematics force.
 
 With the dilatation theta_i = (d/m_i) sum_j w x e V_j, the deviatoric extension
@@ -9,11 +9,11 @@ W_i = kappa/2 theta^2 + alpha/2 sum_j w (e^d)^2 V_j rewrites, using sum_j w x e^
 
 so K = D^T diag(s) D + B^T diag(k_b) B (D maps u to dilatations, B to bond extensions;
 see assembly.py) is the Hessian of sum_i V_i W_i: symmetric
-even when the moduli vary from particle to particle (seed 000 eq 8). kappa is the in-plane
+even when the moduli vary from particle to particle (Turner 2015 eq 8). kappa is the in-plane
 bulk modulus: 9KG/(3K+4G) in plane stress, K + G/3 in plane strain, K in 3D. This is the
-2D split of Le et al. (2014) and equals seed 001's eqs 18-19 (which use the 3D split x theta/3
+2D split of Le et al. (2014) and equals Delorme 2018's eqs 18-19 (which use the 3D split x theta/3
 in 2D: expanding eq 45 with eq 41 gives the same coefficient 2(K + G/3)/q of theta x in plane
-strain). Seed 000 prints k + mu/9 for that coefficient; the calibration above gives k + mu/3.
+strain). Turner 2015 prints k + mu/9 for that coefficient; the calibration above gives k + mu/3.
 Every bond carries the weight omega(|xi|, delta) * beta(delta); LPS needs no recalibration
 for omega: m absorbs it.
 
@@ -81,7 +81,7 @@ class LPS(Material):
         return self._family_sum(w[self._end_bond] * self.length[self._end_bond] ** 2 * self._end_volume)
 
     def weighted_volume(self, w: torch.Tensor) -> torch.Tensor:
-        """m_i = sum_j omega beta |xi|^2 V_j (seed 000 eq 9) for bond weights w."""
+        """m_i = sum_j omega beta |xi|^2 V_j (Turner 2015 eq 9) for bond weights w."""
         m = self._family_volume(w)
         if bool(torch.any(m <= 0)):
             raise ValueError("a particle has a non-positive weighted volume m: the influence "
@@ -89,7 +89,7 @@ class LPS(Material):
         return m
 
     def _dilatation_vectors(self, w, m):
-        """g_e with theta_i = sum_e g_e . u_node(e) (seed 000 eq 10), self ends last."""
+        """g_e with theta_i = sum_e g_e . u_node(e) (Turner 2015 eq 10), self ends last."""
         bond, d = self._end_bond, self.dim
         coef = d * w[bond] * self.length[bond] * self._end_volume / m[self._owner]
         g = (coef * self._end_sign)[:, None] * self.unit[bond]
@@ -97,7 +97,7 @@ class LPS(Material):
         return torch.cat([g, g_self])
 
     def energy_parts(self, moduli, params, u, factor=1.0):
-        """W_i (seed 001 eq 40) rewritten as in the module docstring, split into the
+        """W_i (Delorme 2018 eq 40) rewritten as in the module docstring, split into the
         dilatation part and the bond part (whose bonds carry the correction ``factor``)."""
         K, G = moduli["K"], moduli["G"]
         d, c = self.dim, self.c_d

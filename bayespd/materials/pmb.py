@@ -1,4 +1,4 @@
-"""Bond-based prototype microelastic brittle material (PMB, seed 002 eqs 1-2): linearised
+"""Bond-based prototype microelastic brittle material (PMB, Dodwell 2019 eqs 1-2): linearised
 stiffness, damaged stiffness and exact-kinematics force.
 
 W_i = 1/4 sum_j c omega s^2 |xi| V_j, calibrated on the continuum family so that an isotropic
@@ -8,7 +8,7 @@ omega = 1), 3K / (pi t M_2) in plane stress (nu = 1/3, E = K; = 9K/(pi t delta^3
 M_2 = int_0^delta omega r^2 dr. Every bond carries the weight omega(|xi|, delta) * beta(delta)
 (influence function times partial volume).
 
-Exact kinematics (seed 002 eq 2, ``bayespd.nonlinear``): bond energy 1/2 c_b w_b mu_b s^2 |xi|
+Exact kinematics (Dodwell 2019 eq 2, ``bayespd.nonlinear``): bond energy 1/2 c_b w_b mu_b s^2 |xi|
 V_i V_j, c_b the mean micromodulus of the two ends, w_b = omega * beta from ``bond_weight``,
 times the surface factor when switched on; mu_b the intact fraction. The force of a bond
 depends on its own extension only (``pairwise``); damage scales its stiffness by mu_b.

@@ -2,7 +2,7 @@
 
 Box 40 x 8 x 8 mm (x along the beam, origin at a corner), E = 4000 MPa, nu = 0.3. The
 clamp is the *volume* x <= ``CLAMP`` (a PD Dirichlet layer at least one horizon thick, as
-seed 001 §2.2.1 prescribes displacements on a layer V_u); the FE peer fixes every node in
+Delorme 2018 §2.2.1 prescribes displacements on a layer V_u); the FE peer fixes every node in
 the same volume, which for local elasticity is the same as clamping its face x = CLAMP.
 The load is ``FORCE`` N in -z spread uniformly over the end layer x >= L - ``LOAD_DEPTH``
 (a body force on V_f in both models).

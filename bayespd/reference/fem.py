@@ -1,7 +1,7 @@
 """Finite-element reference solutions of small-strain linear elasticity (scikit-fem).
 
 Classical peer of the peridynamic scenes: the PD model converges, as delta -> 0, to the local
-problem with the *same* volume constraints and body forces (seed 001 eq 11: loads ``b`` on
+problem with the *same* volume constraints and body forces (Delorme 2018 eq 11: loads ``b`` on
 the layer V_f, displacements prescribed on the layer V_u). So the FE problem here is posed on
 a box, with displacements fixed on sub-boxes (volumes, not points) and each load spread as a
 uniform body force over a sub-box. Meshes are tensor-product Q1/Q2 (quads in 2D, hexes in 3D)

@@ -1,6 +1,6 @@
 """Effective elasticity tensor of an LPS lattice at fixed m = delta / h.
 
-On a square (cubic) grid the one-point quadrature of the LPS energy (seed 001 eq 40 with the
+On a square (cubic) grid the one-point quadrature of the LPS energy (Delorme 2018 eq 40 with the
 partial-volume rule, §2.2.4) is exact for dilatation but not for the deviatoric part: an
 interior particle stores W = 1/2 eps : C_m : eps with a tensor C_m of cubic symmetry that
 differs from the isotropic one by a few percent at m = 2-3 and tends to it as m grows. So at

@@ -1,8 +1,8 @@
-"""Seed 001's three-point bending beam (§4.1, §6.1) as a PD scene and its FE peer.
+"""Delorme 2018's three-point bending beam (§4.1, §6.1) as a PD scene and its FE peer.
 
 Beam L x W x t = 128 x 32 x 12.7 mm, origin at the bottom-left corner, supports S = 96 mm
 apart symmetric about mid-span, F = 1000 N down at the top of mid-span, E = 4000 MPa,
-nu = 0.3, plane stress. Seed 001 loads one FE node and fixes the support nodes; its PD model
+nu = 0.3, plane stress. Delorme 2018 loads one FE node and fixes the support nodes; its PD model
 applies loads and displacements on thin material layers V_f, V_u (eq 11). Here both models
 use the same fixed-size patches (``PATCH_WIDTH`` x ``PATCH_DEPTH``): a *pin* (u = 0) under
 the left support, a *roller* (u_y = 0) under the right one (pinning both supports makes an
@@ -36,7 +36,7 @@ LOAD = _patch(_X_LOAD, WIDTH - PATCH_DEPTH)
 
 
 def params(delta: float) -> dict:
-    """PD params {K, G, delta} of the beam material (seed 001 §6.1: K = 3333.33, G = 1538.46)."""
+    """PD params {K, G, delta} of the beam material (Delorme 2018 §6.1: K = 3333.33, G = 1538.46)."""
     K, G = bp.moduli_from_young(YOUNG, POISSON)
     return {"K": float(K), "G": float(G), "delta": float(delta)}
 

@@ -1,6 +1,6 @@
-"""Solvers: explicit dynamics (velocity Verlet), overdamped Langevin dynamics (seed 002 eq 4)
+"""Solvers: explicit dynamics (velocity Verlet), overdamped Langevin dynamics (Dodwell 2019 eq 4)
 with white or spatially correlated (Karhunen-Loeve) noise, quasi-static load stepping with bond
-breaking (seed 004 §5.2) and the stochastic fracture driver."""
+breaking (You 2023 §5.2) and the stochastic fracture driver."""
 from bayespd.solvers.dynamics import (NumericalInstabilityError, Trajectory, critical_time_step,
                                       lumped_mass, stable_time_step, velocity_verlet)
 from bayespd.solvers.langevin import Langevin

@@ -1,4 +1,4 @@
-"""Stochastic fracture: overdamped Langevin dynamics (seed 002 eq 4) of a ``LoadedBody`` with
+"""Stochastic fracture: overdamped Langevin dynamics (Dodwell 2019 eq 4) of a ``LoadedBody`` with
 the exact bond force, a damage law and a displacement-controlled ramp,
 
     dU = -eta^-1 C grad V(U; mu, lambda(t)) dt + sqrt(2 C) dB,
@@ -18,9 +18,9 @@ preconditioned by that factor (``woodbury.Refined``, about two iterations a step
 ``tangent="lagged"``, the steps use that updated operator itself: a W-method (linearly
 implicit Euler with an approximate Jacobian, Hairer & Wanner 1996 §IV.7), with the same
 fixed points and order, whose chord iteration contracts by about the geometric fraction
-s0 per step; one solve a step instead of about three, and no assembly (2.1x faster for the
-10k-particle plate; over 8 seeds its mean failure load, peak load and crack length are
-within one standard error of the exact tangent's, ``benchmarks/fracture.py``). The factor
+s0 per step; one solve a step instead of about three, and no assembly (over 8 seeds its
+mean failure load, peak load and crack length are within one standard error of the exact
+tangent's, ``benchmarks/fracture.py``). The factor
 is made afresh only when the dofs solved for change (a piece came loose), when the bonds
 changed since touch more than ``max_rank`` dofs, or when conjugate gradients need more
 than REFRESH_ITERATIONS. With ``hold`` the ramp waits while bonds break: lambda
@@ -93,7 +93,7 @@ class Realisation:
 
 
 class StochasticFracture:
-    """Seed 002 eq 4 with damage for ``body`` (a ``quasistatic.LoadedBody``): ``damage`` law,
+    """Dodwell 2019 eq 4 with damage for ``body`` (a ``quasistatic.LoadedBody``): ``damage`` law,
     noise ``covariance`` C on the body's free dofs (``noise.white_noise`` or
     ``karhunen_loeve(..., dofs=body.constraints.free_dofs)``), temperature ``eta``, and the
     theta of the scheme (1: linearly implicit Euler, robust for the nonlinear force).

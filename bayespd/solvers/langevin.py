@@ -1,4 +1,4 @@
-"""Overdamped Langevin dynamics of seed 002 eq 4,
+"""Overdamped Langevin dynamics of Dodwell 2019 eq 4,
 
     dU = -eta^-1 C grad V(U) dt + sqrt(2 C) dB,   f = -grad V (internal + external force),
 
@@ -51,7 +51,7 @@ def _generator(generator) -> torch.Generator:
 
 
 class Langevin:
-    """Seed 002 eq 4 for ``force(u) -> f`` (u of shape (n,) or (n, chains)), a
+    """Dodwell 2019 eq 4 for ``force(u) -> f`` (u of shape (n,) or (n, chains)), a
     ``noise.Covariance`` C on the same n dofs, temperature/damping ``eta`` and, for
     theta > 0, ``operator`` A (scipy sparse SPD, e.g. ``LinearForce.matrix``: K + eps I)."""
 

@@ -1,6 +1,6 @@
 """Linear pieces shared by the time integrators.
 
-``LinearForce`` is f(u) = p - A u with A = K + eps I: the force of the potential of seed 002
+``LinearForce`` is f(u) = p - A u with A = K + eps I: the force of the potential of Dodwell 2019
 eq 3 with the linearised bond energy, V(u) = u^T K u / 2 - p^T u + (eps / 2) u^T u, of the
 intact or the damaged body (``material.terms(params, intact)``).
 ``largest_eigenvalue`` (Lanczos) gives stable time steps; ``bayespd.linalg.factors`` factorises.
@@ -63,7 +63,7 @@ class LinearForce:
                 "belong to pieces held by no Dirichlet region and no intact bond to one (a particle "
                 "isolated by damage, a fragment, or an unsupported body), and eps = 0, so they "
                 "have rigid-body modes. Pass eps > 0 to linear_elastic (the confinement "
-                "(eps/2) u.u of seed 002 eq 3; e.g. 1e-6 times the mean diagonal of K), or "
+                "(eps/2) u.u of Dodwell 2019 eq 3; e.g. 1e-6 times the mean diagonal of K), or "
                 "constrain or remove those particles")
         return torch.from_numpy(spd_factor(self.matrix).solve(self.load.numpy()))
 
@@ -81,7 +81,7 @@ def floating_particles(bonds, intact, fixed: np.ndarray) -> np.ndarray:
 
 def linear_elastic(material, params: dict, load=None, eps: float = 0.0,
                    constraints=None, intact=None) -> LinearForce:
-    """The linearised elastic force of ``material`` with confinement eps (seed 002 eq 3).
+    """The linearised elastic force of ``material`` with confinement eps (Dodwell 2019 eq 3).
 
     ``load`` is nodal forces (N, dim). With ``constraints`` (``boundary.Constraints``) the
     state is the free dofs and prescribed displacements enter the load as -K_fc u_c;

@@ -1,4 +1,4 @@
-"""Noise covariances C for the Langevin forcing sqrt(2C) dB (seed 002 eq 4), in the form
+"""Noise covariances C for the Langevin forcing sqrt(2C) dB (Dodwell 2019 eq 4), in the form
 
     C = diag(d) + G G^T,   C^{1/2} xi := sqrt(d) xi_1 + G xi_2   (xi ~ N(0, I_{n_xi})),
 

@@ -1,9 +1,9 @@
-"""Quasi-static loading with bond breaking (seed 004 §5.2): at each load step solve the
+"""Quasi-static loading with bond breaking (You 2023 §5.2): at each load step solve the
 equilibrium, update the damage, and re-solve at the same load until no new bond breaks.
 
 A load factor lambda scales every Dirichlet value and every load of a ``LoadedBody``
 (displacement control: a layer moved by lambda times its value; force control: loads times
-lambda). Equilibrium is the stationary point of the potential of seed 002 eq 3 with the exact
+lambda). Equilibrium is the stationary point of the potential of Dodwell 2019 eq 3 with the exact
 bond kinematics of ``bayespd.nonlinear`` at the current intact fractions mu:
 
     r(u) = f_int(u; mu) + lambda p - eps u = 0   on the free dofs.
@@ -48,7 +48,7 @@ MECHANISM_SHIFT = 1e-8  # relative diagonal shift of a singular tangent (see Loa
 
 class LoadedBody:
     """A material at ``params`` (its moduli and "delta") under Dirichlet regions and loads
-    whose values are those at load factor 1, with confinement ``eps`` (seed 002 eq 3).
+    whose values are those at load factor 1, with confinement ``eps`` (Dodwell 2019 eq 3).
 
     ``loaded``: the particles whose reaction and mean displacement are recorded (default:
     the Dirichlet regions with a non-zero value, and the loaded regions).
@@ -105,7 +105,7 @@ class LoadedBody:
 
     def floating_pieces(self) -> FloatingPieces:
         """A tracker of its own of the pieces that come loose (``active``'s ``pieces``), for a
-        run that shares this body with runs interleaved with it (``solvers.lockstep``)."""
+        run that shares this body with runs interleaved with it (``linalg.lockstep``)."""
         return FloatingPieces(self.bonds, self._fixed)
 
     def active(self, intact, pieces: FloatingPieces | None = None) -> np.ndarray:
@@ -177,8 +177,7 @@ class LoadedBody:
         Bond-based: assembled from those bonds and the bonds between their end particles,
         whose tangent moves from u to ``u_after`` (default u), so the geometric stiffness of
         the damaged zone, where pieces hang on their last bonds, follows the displacement
-        (as preconditioner of the exact tangent: 24 s instead of 30 s for a 10k-particle
-        fracture run, ``benchmarks/fracture.py``); ``rows``: the active dofs of those ends."""
+        (a better preconditioner of the exact tangent); ``rows``: the active dofs of those ends."""
         before, after = torch.as_tensor(before), torch.as_tensor(after)
         if not self.geometric:
             sub, entries, _ = self._restricted(active)
@@ -373,7 +372,7 @@ def quasi_static(body: LoadedBody, load_factors, damage=None, rtol: float = 1e-1
     """Step through ``load_factors`` (any sequence: loading, unloading, reloading); after each
     equilibrium update the damage law (``CriticalStretch`` or ``SmoothStep``, irreversible)
     with the stretch and re-solve until no intact fraction changes by more than
-    ``damage_tol`` (seed 004 §5.2; the sharp law stops exactly with 0, the smoothed step needs
+    ``damage_tol`` (You 2023 §5.2; the sharp law stops exactly with 0, the smoothed step needs
     a tolerance, e.g. 1e-6). ``damage=None``: nonlinear elasticity, no breaking."""
     if isinstance(damage, DamageODE):
         raise TypeError("the damage ODE is rate-dependent and quasi-static loading has no time: "

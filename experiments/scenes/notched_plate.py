@@ -1,4 +1,4 @@
-"""A ready-made fracture scene: a square bond-based plate (plane stress, seed 002 eq 1) with a
+"""A ready-made fracture scene: a square bond-based plate (plane stress, Dodwell 2019 eq 1) with a
 notch from the left edge to the centre, bottom layer clamped, top layer pulled up by lambda
 (mode I), white Brownian forcing C = sigma^2 I (eq 4) and the sharp critical stretch (eq 2).
 Posterior parameters: the bulk modulus ``K`` and the critical stretch ``s0``.

@@ -13,7 +13,7 @@ TRUTH = {"K": K0, "G": MU0}
 
 @pytest.fixture(scope="module")
 def square():
-    """Seed 000 §4.1: the 11 x 11 square and its manufactured data."""
+    """Turner 2015 §4.1: the 11 x 11 square and its manufactured data."""
     scene = square_scene()
     return scene, scene.observe(scene.solve(dict(TRUTH, delta=DELTA))).detach()
 

@@ -1,19 +1,19 @@
-"""bayespd/inverse/virtual_fields.py: the virtual fields of seed 001 and ours vanish where they
+"""bayespd/inverse/virtual_fields.py: the virtual fields of Delorme 2018 and ours vanish where they
 must (support points, patches, outside bumps), are continuous (C1 for bumps), and agree with
 the paper's formulas where they should."""
 import numpy as np
 import pytest
 
-from bayespd.inverse.virtual_fields import bending_fields, bump, interior_bumps, scaled, seed001_fields
+from bayespd.inverse.virtual_fields import bending_fields, bump, interior_bumps, scaled, delorme_fields
 
-L, W, S = 128.0, 32.0, 96.0  # seed 001's beam
+L, W, S = 128.0, 32.0, 96.0  # Delorme 2018's beam
 ORIGIN = (L / 2, 0.0)
 
 
-def test_seed001_fields_are_the_papers_formulas_and_vanish_at_the_supports():
+def test_delorme_fields_are_the_papers_formulas_and_vanish_at_the_supports():
     """u*(1) = (|x1| - S/2) e2 and u*(2) = |x1| x1 x2 / (L W) e1 in the frame centred at
     mid-span bottom (eqs 27-28), exactly; both are 0 at the support points (+-S/2, 0) (eq 29)."""
-    u1, u2 = seed001_fields(L, W, S, origin=ORIGIN)
+    u1, u2 = delorme_fields(L, W, S, origin=ORIGIN)
     rng = np.random.default_rng(0)
     x = rng.uniform([0, 0], [L, W], size=(50, 2))
     x1, x2 = x[:, 0] - L / 2, x[:, 1]
@@ -36,7 +36,7 @@ def test_bending_fields_vanish_on_the_patches_and_equal_the_papers_inside():
         assert np.all(u1(patch) == 0) and np.all(u2(patch) == 0)
     over = np.c_[rng.uniform(0, L / 2 - S / 2 + a, 20), rng.uniform(0, W, 20)]
     assert np.all(u1(over) == 0)
-    p1, p2 = seed001_fields(L, W, S, origin=ORIGIN)
+    p1, p2 = delorme_fields(L, W, S, origin=ORIGIN)
     v1, v2 = bending_fields(L, W, S, origin=ORIGIN)
     inside = np.c_[rng.uniform(L / 2 - S / 2, L / 2 + S / 2, 30), rng.uniform(0, W, 30)]
     np.testing.assert_array_equal(v1(inside), p1(inside))
@@ -92,7 +92,7 @@ def test_interior_bumps_tile_the_box_inside_the_clearance():
 
 
 def test_scaled_multiplies_by_the_weight():
-    u1, _ = seed001_fields(L, W, S, origin=ORIGIN)
+    u1, _ = delorme_fields(L, W, S, origin=ORIGIN)
     weight = lambda x: (x[:, 0] > L / 2).astype(float)  # noqa: E731
     x = np.array([[10.0, 3.0], [100.0, 3.0]])
     np.testing.assert_array_equal(scaled(u1, weight)(x), u1(x) * [[0.0], [1.0]])

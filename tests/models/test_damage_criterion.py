@@ -1,5 +1,5 @@
 """models/smooth_fracture.py and models/damage_criterion.py: s0 of the smoothed damage law
-(seed 004 eq 3.10) from crack openings during a displacement-controlled test.
+(You 2023 eq 3.10) from crack openings during a displacement-controlled test.
 
 A 10 x 12 bond-based plate (h = 1, delta = 3, K = 1, plane strain) with an edge notch a = 4 at
 mid-height, the bottom layer fixed and the top layer moved up by lam * 0.06, lam = 0.1 .. 1 in

@@ -1,4 +1,4 @@
-"""models/heterogeneous_field.py: log mu(x) as a GMRF (bayespd/gmrf.py) on the seed 000 square.
+"""models/heterogeneous_field.py: log mu(x) as a GMRF (bayespd/gmrf.py) on the Turner 2015 square.
 
 Scene: the §4 square (bottom fixed, F = (1000, 1000) on top) on a 6 x 6 grid, mu(x) graded by
 eq 27 (k(x) of eq 26 known). Data: a grid twice as fine (same body and horizon), 1 % noise.
@@ -35,7 +35,7 @@ def square():
 
 
 def test_map_at_fixed_hyper_parameters_is_the_tikhonov_solution(square):
-    """MAP of the Gaussian-prior model == Tikhonov (seed 000 eq 12) with psi = tau, L^T L = Q / tau:
+    """MAP of the Gaussian-prior model == Tikhonov (Turner 2015 eq 12) with psi = tau, L^T L = Q / tau:
     the two objectives are the same function of log mu, so the minimisers agree to solver tolerance."""
     coarse, truth, y, sd = square
     fixed = {"K": truth["K"], "delta": DELTA}

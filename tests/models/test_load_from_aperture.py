@@ -1,4 +1,4 @@
-"""models/load_from_aperture.py: F_y of seed 000 §5 from crack apertures.
+"""models/load_from_aperture.py: F_y of Turner 2015 §5 from crack apertures.
 
 A 2.4 x 2.4 mm plate (plane strain, k = 66.7 GPa, mu = 40 GPa, delta = 0.3 mm), an edge crack
 a = 0.6 mm at mid-height, bottom strip 2 delta fixed, F_y on the top strip 2 delta. Data: the

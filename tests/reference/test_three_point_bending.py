@@ -1,4 +1,4 @@
-"""bayespd/reference/three_point_bending.py: seed 001's beam as a PD scene and its FE peer, and
+"""bayespd/reference/three_point_bending.py: Delorme 2018's beam as a PD scene and its FE peer, and
 the convergence of LPS to FE on it (issue 3).
 
 Bounds are measured values with a margin (numbers in comments); rates come from theory:
@@ -70,9 +70,9 @@ def test_beam_first_order_in_delta_at_fixed_m():
 
 
 
-def test_params_are_seed_001s_moduli():
+def test_params_are_delorme_2018_moduli():
     """E = 4000 MPa, nu = 0.3: K = E / (3 (1 - 2 nu)) = 3333.33, G = E / (2 (1 + nu)) = 1538.46
-    (seed 001 §6.1), delta passed through."""
+    (Delorme 2018 §6.1), delta passed through."""
     p = beam.params(2.5)
     assert p["K"] == pytest.approx(4000.0 / 1.2, rel=1e-14)
     assert p["G"] == pytest.approx(4000.0 / 2.6, rel=1e-14)
