@@ -71,6 +71,11 @@ class Particles:
             return self.x[:, axis] > self.upper()[axis] - depth
         return self.x[:, axis] < self.lower()[axis] + depth
 
+    def interior(self, depth: float) -> np.ndarray:
+        """Mask of the particles farther than ``depth`` from every side of the bounding box
+        (e.g. those whose families are complete: depth = delta + h/2)."""
+        return np.all((self.x > self.lower() + depth) & (self.x < self.upper() - depth), axis=1)
+
     def box(self, lo, hi) -> np.ndarray:
         """Mask of the particles inside the axis-aligned box [lo, hi]."""
         lo, hi = np.asarray(lo, float), np.asarray(hi, float)

@@ -54,13 +54,14 @@ def _points(particles: Particles, points) -> np.ndarray:
 
 
 class LinearObservation:
-    """y_p = sum_k w_pk u[i_pk] at ``points`` (n, dim); ``mask`` (n, dim) marks what is observed."""
+    """y_p = sum_k w_pk u[i_pk] at ``points`` (n, dim), with ``index`` i and ``weights`` w of shape
+    (n, k); ``mask`` (n, dim) marks what is observed."""
 
     def __init__(self, points: np.ndarray, index: np.ndarray, weights: np.ndarray, mask=None):
         self.points = points
         self.mask = np.ones(points.shape, dtype=bool) if mask is None else mask
-        self._index = torch.as_tensor(index)
-        self._weights = torch.as_tensor(weights)
+        self.index = torch.as_tensor(index)
+        self.weights = torch.as_tensor(weights)
 
     @property
     def n(self) -> int:
@@ -68,7 +69,7 @@ class LinearObservation:
 
     def __call__(self, u: torch.Tensor) -> torch.Tensor:
         """Observed displacements (n_points, dim) of a field u (N, dim)."""
-        return (self._weights[..., None] * u[self._index]).sum(1)
+        return (self.weights[..., None] * u[self.index]).sum(1)
 
 
 class Observation(LinearObservation):
@@ -122,8 +123,8 @@ class OpeningObservation(LinearObservation):
                 raise ValueError(f"component must be in [0, {particles.dim}), got {component}")
             mask[:] = False
             mask[:, component] = True
-        super().__init__((above + below) / 2, torch.cat([top._index, bottom._index], 1),
-                         torch.cat([top._weights, -bottom._weights], 1), mask)
+        super().__init__((above + below) / 2, torch.cat([top.index, bottom.index], 1),
+                         torch.cat([top.weights, -bottom.weights], 1), mask)
 
 
 class _Lattice:

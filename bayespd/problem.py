@@ -8,7 +8,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
-from bayespd.bond_loops import components
+from bayespd.connectivity import floating_particles
 from bayespd.linalg.stiffness_solver import Assembly
 from bayespd.boundary import Constraints, Dirichlet, Load
 from bayespd.observe import LinearObservation
@@ -145,7 +145,7 @@ class Scene:
         if self.observation is None:
             raise ValueError("this scene has no observation operator")
         obs, dim, c = self.observation, self.particles.dim, self.constraints
-        index, weights = obs._index.numpy(), obs._weights.numpy()
+        index, weights = obs.index.numpy(), obs.weights.numpy()
         rows = (np.arange(obs.n)[:, None, None] * dim + np.arange(dim)).repeat(index.shape[1], 1)
         cols = index[:, :, None] * dim + np.arange(dim)
         vals = np.broadcast_to(weights[:, :, None], rows.shape)
@@ -166,12 +166,8 @@ class Scene:
 def _refuse_floating_pieces(bonds, fixed: np.ndarray) -> None:
     """Each connected piece of the bond graph (a body cut through by a pre-crack, an
     isolated particle) needs a Dirichlet region, else it floats and K is singular."""
-    n = len(fixed)
-    count, label = components(n, bonds.i, bonds.j)
-    anchored = np.zeros(count, dtype=bool)
-    anchored[label[fixed]] = True
-    if not anchored.all():
-        piece = np.flatnonzero(~anchored[label])
+    piece = floating_particles(bonds, None, fixed)
+    if len(piece):
         raise ValueError(f"{len(piece)} particle(s) (e.g. {piece[0]}) form a piece with no "
                          "Dirichlet region: it can move as a rigid body (a crack through the "
                          "body or an isolated particle?); constrain it or remove it")

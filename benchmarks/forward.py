@@ -39,6 +39,7 @@ def run_one(n: int, m: float, material: str, solver: str, threads: int, scene: b
 
     import bayespd as bp
     from bayespd import linalg
+    from bayespd.linalg import sparse
     from bayespd.linalg.stiffness_solver import Assembly
 
     torch.set_num_threads(threads)

@@ -25,7 +25,7 @@ from bayespd import bond_loops  # noqa: E402
 from bayespd.damage import DamageIndex, crack_path  # noqa: E402
 from bayespd.scenes.notched_plate import _unit_body, notched_plate  # noqa: E402
 from bayespd.solvers import fracture  # noqa: E402
-from bayespd.solvers.linear import CONNECTED  # noqa: E402
+from bayespd.connectivity import CONNECTED  # noqa: E402
 
 PARAMS = {"K": 2886.0, "s0": 0.0094}  # the posterior mean of experiments/crack_ensemble.py
 

@@ -1,13 +1,13 @@
-"""Floating pieces followed as bonds break (``bayespd.solvers.connectivity``): the same
+"""Floating pieces followed as bonds break (``bayespd.connectivity``): the same
 particles as labelling the graph afresh at every change, with the relabelling skipped
 whenever the lost bonds' ends keep a common neighbour."""
 import numpy as np
 import torch
 
 import bayespd as bp
-from bayespd.solvers import connectivity
-from bayespd.solvers.connectivity import FloatingPieces
-from bayespd.solvers.linear import floating_particles
+from bayespd import connectivity
+from bayespd.connectivity import FloatingPieces
+from bayespd.connectivity import floating_particles
 
 
 def test_floating_pieces_match_a_fresh_labelling(monkeypatch):

@@ -103,6 +103,12 @@ def test_constants_round_trip(plane, dim):
         moduli_from_constants(mat, float(a_s), -float(a_d))
 
 
+def test_refuses_a_bond_based_material():
+    scene = plate_scene(material="pmb")
+    with pytest.raises(ValueError, match="VFM identifies the state-based.*BondBased.*bayespd.LPS"):
+        VirtualWork(scene, [lambda x: np.zeros_like(x)], {"delta": 2.5})
+
+
 def test_refuses_field_not_vanishing_on_supports(beam):
     scene, _, _ = beam
     paper = vf.delorme_fields(tpb.LENGTH, tpb.WIDTH, tpb.SPAN, origin=(tpb.LENGTH / 2, 0))

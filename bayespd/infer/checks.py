@@ -68,7 +68,7 @@ def check_priors(priors: dict, scene) -> None:
     parameter of the scene are skipped."""
     h, delta_max = scene.particles.h, scene.material.bonds.delta_max
     for name, prior in priors.items():
-        if name not in (*scene.param_names, "delta"):
+        if name not in scene.param_names:
             continue
         low, high = _bounds(prior.support)
         if name in scene.material.moduli_names and low < 0:

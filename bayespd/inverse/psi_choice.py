@@ -97,9 +97,10 @@ def lcurve_corner(psis, misfit, penalty) -> tuple[float, np.ndarray]:
     t = np.log(np.asarray(psis, dtype=float))
     if len(t) < 5:
         raise ValueError("the L-curve needs at least 5 values of psi to locate a corner")
-    x, y = np.log(np.asarray(misfit, dtype=float)), np.log(np.asarray(penalty, dtype=float))
-    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(y))):
+    norms = np.asarray([misfit, penalty], dtype=float)
+    if not (np.all(np.isfinite(norms)) and np.all(norms > 0)):
         raise ValueError("the misfit and penalty norms must be positive and finite along the sweep")
+    x, y = np.log(norms)
     dx, dy = np.gradient(x, t), np.gradient(y, t)
     ddx, ddy = np.gradient(dx, t), np.gradient(dy, t)
     kappa = (dx * ddy - ddx * dy) / np.maximum(dx**2 + dy**2, 1e-300) ** 1.5

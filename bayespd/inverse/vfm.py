@@ -115,6 +115,10 @@ class VirtualWork:
         if "delta" not in fixed:
             raise ValueError("fixed params need the horizon: fixed={'delta': ...}")
         self.scene, self.material = scene, scene.material
+        if getattr(self.material, "c_d", None) is None:
+            raise ValueError(f"the PD VFM identifies the state-based (LPS) moduli K and G, whose works "
+                             f"are linear in (a_s, a_d); {type(self.material).__name__} has no "
+                             "dilatation term: build the scene with bayespd.LPS")
         self.fixed = {k: torch.as_tensor(v) for k, v in fixed.items()}
         self.tol = tol
         p = self.material.particles

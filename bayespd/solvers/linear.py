@@ -13,12 +13,9 @@ import scipy.sparse.linalg as spla
 import torch
 
 from bayespd.linalg.assembly import to_numpy
-from bayespd.bond_loops import components
+from bayespd.connectivity import floating_particles
 from bayespd.linalg.factors import spd_factor
 from bayespd.linalg.sparse import NotPositiveDefiniteError
-
-CONNECTED = 1e-6  # bonds with a smaller intact fraction no longer hold a piece in place
-
 
 class LinearForce:
     """f(u) = p - A u for a sparse symmetric A (n x n) and load p (n,); u is (n,) or (n, batch).
@@ -66,17 +63,6 @@ class LinearForce:
                 "(eps/2) u.u of Dodwell 2019 eq 3; e.g. 1e-6 times the mean diagonal of K), or "
                 "constrain or remove those particles")
         return torch.from_numpy(spd_factor(self.matrix).solve(self.load.numpy()))
-
-
-def floating_particles(bonds, intact, fixed: np.ndarray) -> np.ndarray:
-    """Indices of the particles in pieces of the graph of bonds with intact fraction above
-    CONNECTED (all bonds when ``intact`` is None) that hold no ``fixed`` particle."""
-    n = len(fixed)
-    keep = np.ones(bonds.n, dtype=bool) if intact is None else np.asarray(torch.as_tensor(intact) > CONNECTED)
-    count, label = components(n, bonds.i, bonds.j, keep)
-    anchored = np.zeros(count, dtype=bool)
-    anchored[label[fixed]] = True
-    return np.flatnonzero(~anchored[label])
 
 
 def linear_elastic(material, params: dict, load=None, eps: float = 0.0,

@@ -39,7 +39,7 @@ from bayespd import bond_loops
 from bayespd.boundary import Constraints
 from bayespd.damage import DamageIndex, DamageODE
 from bayespd.nonlinear import NonlinearBonds
-from bayespd.solvers.connectivity import FloatingPieces
+from bayespd.connectivity import FloatingPieces
 from bayespd.linalg.woodbury import LocalChange
 from bayespd.linalg.sparse import ConvergenceError, NotPositiveDefiniteError
 

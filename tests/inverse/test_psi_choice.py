@@ -117,9 +117,6 @@ def test_lcurve_corner_refuses_short_or_non_positive_sweeps():
         lcurve_corner([1, 2, 3, 4, 5], [1, 2, np.inf, 4, 5], [5, 4, 3, 2, 1])
 
 
-@pytest.mark.xfail(strict=True, reason="bug: lcurve_corner takes np.log of the norms before checking "
-                   "them, so a zero (or negative) norm emits a RuntimeWarning from bayespd, an error under "
-                   "the project's warning filter, instead of the ValueError that names the fix")
 def test_lcurve_corner_refuses_a_zero_norm_with_its_message():
     """A zero misfit (an exact fit at the weakest psi) is refused with the ValueError that
     says the norms must be positive, not a divide-by-zero warning."""

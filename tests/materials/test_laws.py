@@ -2,6 +2,8 @@
 energy of an isotropic expansion, symmetric stiffness with the rigid modes in its null space,
 damaged terms at mu = 1 equal to the intact ones, and the damaged linearised stiffness as the
 Hessian at u = 0 of the nonlinear energy whose gradient is minus the nonlinear force."""
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -27,10 +29,6 @@ LAWS = [pytest.param(bp.LPS, lps_bulk, 1e-8, id="lps"),
         pytest.param(bp.BondBased, bond_based_bulk, 0.03, id="pmb"),
         pytest.param(bp.ConicalBondBased, bond_based_bulk, 0.07, id="conical")]
 
-
-def interior(p, depth):
-    lo, hi = p.lower() + depth, p.upper() - depth
-    return np.all((p.x > lo) & (p.x < hi), axis=1)
 
 
 def random_u(n, scale, seed=0):
@@ -62,7 +60,7 @@ def test_patch_test_zero_interior_force(lattice, law, bulk, tol, plane):
     eps = torch.tensor([[1e-3, 4e-4], [4e-4, -2e-3]])
     values = mat.stiffness({"K": K0, "G": G0, "delta": 2.7})
     f = mat.pattern.matvec(values, (torch.as_tensor(p.x) @ eps.T).reshape(-1)).reshape(-1, 2)
-    inner = interior(p, 2 * (2.7 + 0.5) + 1e-9)
+    inner = p.interior(2 * (2.7 + 0.5) + 1e-9)
     assert inner.sum() > 20
     assert f[inner].abs().max() <= 1e-10 * f[~inner].abs().max()
 
@@ -77,7 +75,7 @@ def test_isotropic_expansion_stores_the_classical_energy(lattice, law, bulk, tol
     mat = law(p, bonds, plane=plane)
     strain = 1e-3
     W = mat.energy_density({"K": K0, "G": G0, "delta": 3.0}, strain * torch.as_tensor(p.x))
-    inner = interior(p, 3.0 + 0.5 + 1e-9)
+    inner = p.interior(3.0 + 0.5 + 1e-9)
     classical = 0.5 * bulk(mat, K0, plane) * (2 * strain) ** 2
     np.testing.assert_allclose(W[inner].numpy(), classical, rtol=tol)
 
@@ -154,3 +152,17 @@ def test_the_horizon_is_an_ordinary_parameter(plate, law, bulk, tol):
     for evaluate in (mat.stiffness, lambda q: mat.terms(q, mu), NonlinearBonds(mat).at):
         with pytest.raises(ValueError, match=r"pass params\['delta'\]"):
             evaluate({"K": K0, "G": G0})
+
+
+@pytest.mark.parametrize("law,coefs", [(bp.BondBased, (9, 72 / 5, 18)), (bp.ConicalBondBased, (36, 288 / 5, 90))],
+                         ids=["pmb", "conical"])
+def test_bond_based_micromodulus_closed_forms(law, coefs):
+    """omega = 1: c t = a K/(pi delta^3) in plane stress and plane strain, c = a K/(pi delta^4)
+    in 3D, with a = 9, 72/5, 18 (PMB) and 36, 288/5, 90 (conical: c0 = M_2 / C_2 = 4 times
+    PMB's) -- the constants of the laws' module docstrings."""
+    p2, p3 = bp.grid_2d(6.0, 6.0, 1.0), bp.grid_3d(4.0, 4.0, 4.0, 1.0)
+    K, d = torch.tensor(1e3), 2.5
+    for (p, plane, power), a in zip([(p2, "stress", 3), (p2, "strain", 3), (p3, "stress", 4)], coefs):
+        mat = law(p, bp.find_bonds(p, d), plane=plane)
+        c = mat.micromodulus(K, {"delta": d}) * p.thickness
+        assert abs(float(c / (a * K / (math.pi * d**power))) - 1) < 1e-14

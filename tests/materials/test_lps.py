@@ -20,10 +20,6 @@ def classical_energy_density(eps, plane):
     return 0.5 * v @ C @ v
 
 
-def interior(p, depth):
-    lo, hi = p.lower() + depth, p.upper() - depth
-    return np.all((p.x > lo) & (p.x < hi), axis=1)
-
 
 @pytest.fixture(scope="module", params=["linear", "smooth"])
 def lattice(request):
@@ -42,7 +38,7 @@ def test_lps_patch_test_zero_interior_force(lattice, plane, delta):
     u = torch.as_tensor(p.x) @ eps.T
     values = mat.stiffness(params)
     f = mat.pattern.matvec(values, u.reshape(-1)).reshape(-1, 2)
-    inner = interior(p, 2 * (delta + 0.5) + 1e-9)  # own and neighbours' families complete
+    inner = p.interior(2 * (delta + 0.5) + 1e-9)  # own and neighbours' families complete
     scale = f[~inner].abs().max()
     assert inner.sum() > 20
     assert f[inner].abs().max() <= 1e-10 * scale
@@ -57,7 +53,7 @@ def test_lps_energy_density_matches_classical(lattice, plane):
     mat = bp.LPS(p, bonds, plane=plane)
     K, G = bp.moduli_from_young(E, NU)
     params = {"K": K, "G": G, "delta": delta}
-    inner = interior(p, delta + 0.5 + 1e-9)
+    inner = p.interior(delta + 0.5 + 1e-9)
     x = torch.as_tensor(p.x)
 
     def W(eps):

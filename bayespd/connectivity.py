@@ -1,4 +1,6 @@
-"""The pieces of a body that hold no fixed particle, followed as bonds break.
+"""The pieces of a body that hold no fixed particle: the one check that the static Scene (which
+refuses them), the linear force (which reports them) and the quasi-static and fracture
+solvers (which drop their dofs) share.
 
 ``floating_particles`` labels the components of the intact-bond graph afresh (a pass over
 every bond). Between two calls of a fracture run a few bonds break, and breaking a bond
@@ -13,9 +15,21 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from bayespd.solvers.linear import CONNECTED, floating_particles
+from bayespd.bond_loops import components
 
+CONNECTED = 1e-6  # bonds with a smaller intact fraction no longer hold a piece in place
 MAX_CHECKED = 64  # more bonds lost at once than this: relabel instead of checking each
+
+
+def floating_particles(bonds, intact, fixed: np.ndarray) -> np.ndarray:
+    """Indices of the particles in pieces of the graph of bonds with intact fraction above
+    CONNECTED (all bonds when ``intact`` is None) that hold no ``fixed`` particle."""
+    n = len(fixed)
+    keep = np.ones(bonds.n, dtype=bool) if intact is None else np.asarray(torch.as_tensor(intact) > CONNECTED)
+    count, label = components(n, bonds.i, bonds.j, keep)
+    anchored = np.zeros(count, dtype=bool)
+    anchored[label[fixed]] = True
+    return np.flatnonzero(~anchored[label])
 
 
 class FloatingPieces:
