@@ -66,7 +66,7 @@ class NonlinearBonds:
     @cached_property
     def ends(self) -> tuple[np.ndarray, np.ndarray]:
         """(i, j) as int32 numpy arrays, for ``bond_loops``."""
-        return self.i.numpy().astype(np.int32), self.j.numpy().astype(np.int32)
+        return self.material.bonds.i.astype(np.int32), self.material.bonds.j.astype(np.int32)
 
     def incidence(self, like: torch.Tensor) -> tuple:
         """(D, D^T) for tensors like ``like`` (its dtype and device): row a n_bonds + b of D
@@ -76,7 +76,7 @@ class NonlinearBonds:
         key = ("incidence", like.dtype, like.device)
         if key not in self._geometry:
             d, nb = self.dim, len(self.i)
-            i, j = self.i.numpy(), self.j.numpy()
+            i, j = self.material.bonds.i, self.material.bonds.j
             rows = np.tile(np.arange(d * nb), 2)
             cols = np.concatenate([d * j + a for a in range(d)] + [d * i + a for a in range(d)])
             signs = np.repeat([1.0, -1.0], d * nb).astype(np.float32 if like.dtype == torch.float32 else np.float64)

@@ -39,7 +39,7 @@ import arviz as az  # noqa: E402
 import pyro.distributions as dist  # noqa: E402
 from pyro.infer.autoguide.initialization import init_to_value  # noqa: E402
 
-import bayespd as bp  # noqa: E402
+from bayespd.linalg import sparse  # noqa: E402
 from bayespd.infer import fit, to_inference_data  # noqa: E402
 from bayespd.infer.space import Unconstrained  # noqa: E402
 from bayespd.models.elastic_plate import elastic_plate  # noqa: E402
@@ -124,7 +124,7 @@ def main():
                         help="partial-volume ramp in delta of the model (bayespd.bonds.partial_volume)")
     args = parser.parse_args()
     print(f"load average at start {os.getloadavg()[0]:.2f}; torch threads {torch.get_num_threads()}; "
-          f"backend {bp.sparse.default_backend()}; partial volumes {args.rule}")
+          f"backend {sparse.default_backend()}; partial volumes {args.rule}")
     nuts = None
     for name in args.scenes:
         scene, y, sigma = demo_problem(args.rule) if name == "demo" else fine_problem(rule=args.rule)

@@ -35,6 +35,7 @@ import common  # noqa: F401  (one torch thread; repository root on sys.path)
 from common import run_dir, write_metrics
 
 import bayespd as bp
+from bayespd.linalg import sparse
 from bayespd.infer import fit
 from bayespd.inverse import tikhonov
 from bayespd.inverse.vfm import VirtualWork, identify, optimise
@@ -186,7 +187,7 @@ def main(h: float, m: int, sigma: float, deterministic_only: bool):
                "settings": {"h": h, "m": m, "delta": delta, "sigma_mm": sigma, "seed": SEED, "init": INIT,
                             "fe_mesh": tpb.REFERENCE_MESH, "particles": scene.particles.n,
                             "truth": {k: pb.truth[k] for k in ("K", "G")}, "bayes": {} if deterministic_only else BAYES,
-                            "backend": bp.sparse.default_backend()},
+                            "backend": sparse.default_backend()},
                "targets": {},
                "table": table(results),
                "methods": results}

@@ -18,6 +18,7 @@ import common  # noqa: F401  (one torch thread, repository root on sys.path)
 from common import run_dir, write_metrics
 
 import bayespd as bp
+from bayespd.linalg import sparse
 from bayespd.atomic import atomic_path
 from bayespd.damage import CriticalStretch, crack_length, crack_path
 from bayespd.solvers import white_noise
@@ -241,7 +242,7 @@ def main(quick: bool, realisations: int | None):
                      "dt": DT, "M_dt_lambda_min": RELAX, "random_force_per_dof_N": float(np.sqrt(2 / DT) * SIGMA / mob),
                      "theta": 1.0, "hold_while_breaking": True, "damage_threshold": THRESHOLD,
                      "path_threshold": PATH_THRESHOLD,
-                     "seeds": list(range(n_real)), "backend": bp.sparse.default_backend()}}
+                     "seeds": list(range(n_real)), "backend": sparse.default_backend()}}
     write_metrics("crack_paths", metrics)
     print(f"deterministic: failure at {failure_load(lams, qs_lengths):.4f} mm, crack {qs_len:.1f} mm, "
           f"deviation {qs_dev:.2f} mm ({qs_wall:.1f} s)")

@@ -16,6 +16,7 @@ import common  # noqa: F401  (puts the repository root on sys.path for models/)
 from common import quick_seed_arguments, run_dir, write_atomic, write_metrics
 
 import bayespd as bp
+from bayespd.linalg import sparse
 from bayespd.infer import fit, save, summary, to_inference_data
 from bayespd.inverse import tikhonov
 from bayespd.observe import locate
@@ -152,7 +153,7 @@ def main(quick: bool, seed: int = 0):
                "nuts_divergences": divergences,
                "settings": {"quick": quick, "seed": seed, "h_model": H_MODEL, "h_data": H_DATA,
                             "delta_max": DELTA_MAX, "n_points": len(points), "n_particles": scene.particles.n,
-                            "noise": "1 % of max |u|", "nominal": NOMINAL, "backend": bp.sparse.default_backend(),
+                            "noise": "1 % of max |u|", "nominal": NOMINAL, "backend": sparse.default_backend(),
                             "svi_steps": svi_steps, "nuts_draws_per_chain": draws, "nuts_warmup": warmup}}
     write_metrics("demo", metrics)
     table = render_table(truth, tik, methods)

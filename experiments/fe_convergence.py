@@ -20,6 +20,7 @@ import common  # noqa: F401  (one torch thread; repository root on sys.path)
 from common import run_dir, write_metrics
 
 import bayespd as bp
+from bayespd.linalg import sparse
 from bayespd.reference import (cantilever, isotropic_stiffness, lattice_stiffness, observed_order,
                                pd_versus_fe, relative_l2, three_point_bending)
 
@@ -181,7 +182,7 @@ def main(quick: bool):
                      "cantilever": {"size": [cant.LENGTH, cant.WIDTH, cant.DEPTH], "E": cant.YOUNG,
                                     "nu": cant.POISSON, "F": cant.FORCE, "clamped_volume_x": cant.CLAMP,
                                     "load_layer": cant.LOAD_DEPTH},
-                     "backend": bp.sparse.default_backend()},
+                     "backend": sparse.default_backend()},
         "targets": targets,
         "fe": {"beam": beam_fe, "cantilever": cant_fe},
         "series": series,

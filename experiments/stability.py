@@ -37,6 +37,7 @@ import common  # noqa: F401  (one torch thread, repository root on sys.path)
 from common import run_dir, write_metrics
 
 import bayespd as bp
+from bayespd.linalg import sparse
 from bayespd.materials import NonFiniteParameterError
 from bayespd.nonlinear import NonlinearBonds
 from bayespd.solvers import (Langevin, NumericalInstabilityError, critical_time_step, linear_elastic,
@@ -518,7 +519,7 @@ def main(quick: bool):
     }
     wall = time.perf_counter() - start
     metrics = {"wall_time_s": wall, "targets": targets, "cases": summary, "details": res,
-               "settings": {"quick": quick, "eps64": EPS64, "eps32": EPS32, "backend": bp.sparse.default_backend(),
+               "settings": {"quick": quick, "eps64": EPS64, "eps32": EPS32, "backend": sparse.default_backend(),
                             "error_bound": "sqrt(n) cond(A) eps64", "z_threshold": thr}}
     write_metrics("stability", metrics)
     for k, v in summary.items():

@@ -30,6 +30,7 @@ import common  # noqa: F401  (one torch thread; repository root on sys.path)
 from common import run_dir, write_metrics
 
 import bayespd as bp
+from bayespd.linalg import sparse
 from bayespd.inverse import tikhonov
 from bayespd.inverse import virtual_fields as vf
 from bayespd.inverse.vfm import (VirtualWork, identify, moduli_from_constants, moduli_sensitivities,
@@ -404,7 +405,7 @@ def main(quick: bool):
                      "supports": "pin + roller patches (4 x 2 mm), load as body force on a 4 x 2 mm top patch",
                      "fields": "interior = Delorme 2018 eq 27 cleared off the patches + 12 interior bumps; "
                                "paper = eqs 27-28 cleared off the patches",
-                     "truth": {"K": truth["K"], "G": truth["G"]}, "backend": bp.sparse.default_backend()},
+                     "truth": {"K": truth["K"], "G": truth["G"]}, "backend": sparse.default_backend()},
         "targets": targets,
         "m_study": ms_rows, "table2": t2, "table3": t3, "table3_field_sets": sets, "table3_fine": fine, "table4": t4,
         "table3_h0.5": {"max_abs_error": max(abs(r["rel_error"][k]) for r in t3 for k in "KG"),
