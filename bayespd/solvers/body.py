@@ -21,7 +21,7 @@ is dropped: the confinement of eq 3 holds such pieces.
 """
 from __future__ import annotations
 
-from functools import cached_property
+from functools import cached_property, lru_cache
 
 import numpy as np
 import scipy.sparse as sp
@@ -226,7 +226,7 @@ class LoadedBody:
         N, d, i, j = self.particles.n, self.particles.dim, self.bonds.i, self.bonds.j
         S = np.stack([np.bincount(i, H[:, a, c], minlength=N) + np.bincount(j, H[:, a, c], minlength=N)
                       for a in range(d) for c in range(d)], 1)  # ii: the sum over the bonds of i
-        return np.concatenate([-H.reshape(-1), S.reshape(-1)])[self._tangent_sources]
+        return np.concatenate([-H.reshape(-1), S.reshape(-1)])[tangent_sources(self.material)]
 
     def _bond_hessians(self, u, bonds=slice(None)) -> np.ndarray:
         """Bond-based: the intact Hessian blocks k [c I + (1 - c) n n^T] (b, d, d) of
@@ -243,39 +243,6 @@ class LoadedBody:
             H[:, a, a] += k * c
         return H
 
-    @cached_property
-    def _tangent_sources(self) -> np.ndarray:
-        """For each pattern entry, its place in [-H (bonds, d, d), S (particles, d, d)]: an
-        off-diagonal block belongs to one bond (H symmetric serves ij and ji), a diagonal
-        block is the sum S over a particle's bonds."""
-        d, p = self.particles.dim, np.arange(self.particles.n)
-        diagonal = self._block_positions(p, p).reshape(-1)
-        i, j = self.bonds.i, self.bonds.j
-        if np.any(np.diff(np.sort(np.minimum(i, j) * self.particles.n + np.maximum(i, j))) == 0):
-            raise ValueError("a bond is listed twice: give each pair of particles one bond")
-        sources = np.full(self.material.pattern.nnz, -1)
-        bond_entries = np.arange(self.n_bonds * d * d)
-        sources[self._blocks[:, 2].reshape(-1)] = bond_entries
-        sources[self._blocks[:, 3].reshape(-1)] = bond_entries
-        sources[diagonal] = self.n_bonds * d * d + np.arange(len(diagonal))
-        if np.any(sources < 0):
-            raise ValueError("the pattern has entries no bond makes: a bond-based pattern is "
-                             "the bonds' blocks and the diagonal")
-        return sources
-
-    @cached_property
-    def _blocks(self) -> np.ndarray:
-        """Pattern positions (bonds, 4, d, d) of the blocks ii, jj, ij, ji of each bond."""
-        i, j, block = self.bonds.i, self.bonds.j, self._block_positions
-        return np.stack([block(i, i), block(j, j), block(i, j), block(j, i)], 1)
-
-    def _block_positions(self, p: np.ndarray, q: np.ndarray) -> np.ndarray:
-        """Pattern positions (len(p), d, d) of the blocks (p_k, q_k)."""
-        d, a = self.particles.dim, np.arange(self.particles.dim)
-        rows = np.broadcast_to(d * p[:, None, None] + a[:, None], (len(p), d, d))
-        cols = np.broadcast_to(d * q[:, None, None] + a[None, :], (len(p), d, d))
-        return self.material.pattern.position(rows.reshape(-1), cols.reshape(-1)).reshape(-1, d, d)
-
     def _restricted(self, active: np.ndarray):
         key = active.tobytes()
         if key not in self._patterns:
@@ -285,3 +252,33 @@ class LoadedBody:
             k = np.arange(sub.n)
             self._patterns = {key: (sub, entries, sub.position(k, k))}  # keep the latest only
         return self._patterns[key]
+
+
+@lru_cache(maxsize=4)
+def tangent_sources(material) -> np.ndarray:
+    """For each entry of a bond-based ``material``'s pattern, its place in [-H (bonds, d, d),
+    S (particles, d, d)]: an off-diagonal block belongs to one bond (H symmetric serves ij and
+    ji), a diagonal block is the sum S over a particle's bonds. It depends on the material
+    alone, so it is kept for the latest four: the bodies of an ensemble's draws, one scene
+    each on a shared material (``bayespd.scenes.notched_plate``), make it once."""
+    n, d, pattern = material.particles.n, material.particles.dim, material.pattern
+    i, j = material.bonds.i, material.bonds.j
+
+    def blocks(p, q):  # pattern positions (len(p), d, d) of the blocks (p_k, q_k)
+        a = np.arange(d)
+        rows = np.broadcast_to(d * p[:, None, None] + a[:, None], (len(p), d, d))
+        cols = np.broadcast_to(d * q[:, None, None] + a[None, :], (len(p), d, d))
+        return pattern.position(rows.reshape(-1), cols.reshape(-1)).reshape(-1)
+
+    if np.any(np.diff(np.sort(np.minimum(i, j) * n + np.maximum(i, j))) == 0):
+        raise ValueError("a bond is listed twice: give each pair of particles one bond")
+    diagonal = blocks(np.arange(n), np.arange(n))
+    sources = np.full(pattern.nnz, -1)
+    bond_entries = np.arange(len(i) * d * d)
+    sources[blocks(i, j)] = bond_entries
+    sources[blocks(j, i)] = bond_entries
+    sources[diagonal] = len(i) * d * d + np.arange(len(diagonal))
+    if np.any(sources < 0):
+        raise ValueError("the pattern has entries no bond makes: a bond-based pattern is "
+                         "the bonds' blocks and the diagonal")
+    return sources
