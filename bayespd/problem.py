@@ -96,7 +96,7 @@ class Scene:
     def covariance(self) -> Covariance:
         """C of the Brownian forcing on the free dofs, built by ``noise`` on first use."""
         if self.noise is None:
-            raise ValueError("this scene has no noise: declare it, e.g. Scene(..., "
+            raise ValueError("this scene has no Brownian noise: declare it, e.g. Scene(..., "
                              "noise=lambda dofs: white_noise(sigma, len(dofs)))")
         free = self.constraints.free_dofs
         C = self.noise(free)

@@ -105,14 +105,11 @@ class StochasticFracture:
         if scene.damage is None:
             raise ValueError("stochastic fracture needs a damage law: declare it in the scene, "
                              "e.g. Scene(..., damage=CriticalStretch(s0))")
-        if scene.noise is None:
-            raise ValueError("stochastic fracture needs Brownian noise: declare it in the scene, "
-                             "e.g. Scene(..., noise=lambda dofs: white_noise(sigma, len(dofs)))")
+        self.C = scene.covariance  # refuses a scene without noise, naming the fix
         if not 0.5 <= theta <= 1:
             raise ValueError("theta must lie in [1/2, 1]: the operator is needed for stability")
         if not reaction_scale > 0:
             raise ValueError(f"reaction_scale must be positive, got {reaction_scale}")
-        self.C = scene.covariance
         self.body, self.damage, self.eta, self.theta = scene.at(params), scene.damage, eta, theta
         self.reaction_scale = float(reaction_scale)
 
