@@ -7,9 +7,10 @@ The mobility M = sigma^2 / eta is set so that M dt lambda_min(A) = ``relax`` (on
 the elastic field); the bond-based operator is linear in K (c = 9 K / (pi t delta^3)), so
 lambda_min(A; K) = K lambda_min(A; 1), found once per process. The force is linear in K too,
 so eq 4 at K is eq 4 of the unit-modulus body at temperature eta / K = sigma^2 dt
-lambda_min(A; 1) / relax, which does not depend on K: every draw runs the same unit body
-(one per process) with the same step operator, whose factor is made once per process
-(``trailing.shared``), and only its reactions are scaled by K.
+lambda_min(A; 1) / relax, which does not depend on K: every draw runs a ``Scene`` of the same
+unit-modulus material (built once per process) with its own critical stretch, and the same step
+operator, whose factor is made once per process (``trailing.shared``); only its reactions are
+scaled by K.
 """
 from __future__ import annotations
 
