@@ -90,6 +90,7 @@ class Scene:
         ``quasi_static``, ``equilibrium`` and ``StochasticFracture``; ``loaded``: the particles
         whose reaction and mean displacement are recorded (default: the Dirichlet regions with
         a non-zero value, and the loaded regions)."""
+        self._params(params)  # refuses missing or unknown names
         return LoadedBody(self, params, loaded)
 
     @cached_property

@@ -186,6 +186,9 @@ def test_one_scene_serves_the_static_solve_quasi_static_loading_and_fracture():
     slope = np.log(diffs[1] / diffs[0]) / np.log(lams[1] / lams[0])
     assert 1.9 < slope < 2.1, (diffs, slope)
     assert diffs[0] < 1e-2 * lams[0] * float(u_lin.norm())
+    assert scene.at(params).constraints is scene.constraints
+    with pytest.raises(ValueError, match="missing"):
+        scene.at({"K": 1000.0})
     qs = quasi_static(scene, params, [lams[0]])
     run = StochasticFracture(scene, params, eta=1e-18 / 1e3).run([lams[0]] * 25, dt=1.0, seed=0, hold=False)
     assert run.broken[-1] == 0
