@@ -9,8 +9,8 @@ kinematics of ``bayespd.nonlinear`` at the current intact fractions mu:
     r(u) = f_int(u; mu) + lambda p - eps u = 0   on the free dofs.
 
 Solver: Newton, u <- u + (T + eps I)^-1 r, T the tangent of ``body.LoadedBody`` (the scene at
-fixed params), refactorised only when the iteration slows down (``equilibrium``). Pieces that
-come loose are dropped from the solve (``body``); under force control a loaded piece that
+fixed params), refactorised only when the iteration slows down (``equilibrium``). With eps = 0
+pieces that come loose are dropped from the solve (``body``); under force control a loaded piece that
 comes loose cannot carry its load: the run stops there (``separated``).
 """
 from __future__ import annotations
