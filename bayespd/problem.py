@@ -1,4 +1,6 @@
-"""Scene: a material with its constraints, loads and observation; solve(params) -> u."""
+"""Scene: a material with its constraints, loads, observation and the optional parts a
+problem declares (damage law, Brownian noise, confinement); solve(params) -> u, at(params) -> the
+body at fixed params for the nonlinear solvers (``solvers.quasistatic``, ``solvers.fracture``)."""
 from __future__ import annotations
 
 import warnings
@@ -13,22 +15,37 @@ from bayespd.linalg.stiffness_solver import Assembly
 from bayespd.boundary import Constraints, Dirichlet, Load
 from bayespd.observe import LinearObservation
 from bayespd.linalg.sparse import ValuesForm, solve_form
+from bayespd.solvers.noise import Covariance
+from bayespd.solvers.body import LoadedBody
 
 
 class Scene:
-    """A static linear-elastic peridynamic problem built only from the parts it declares.
+    """A peridynamic problem built only from the parts it declares (shared/DESIGN.md, principle 1).
 
-    ``params`` holds the material's parameters (``material.param_names``, e.g. K, G and the
-    horizon ``delta``) and an optional ``load`` factor scaling every load. Each may be a
-    tensor that requires grad: the gradient costs one extra solve with the same factor.
+    The static solve is linear elastic: ``params`` holds the material's parameters
+    (``material.param_names``, e.g. K, G and the horizon ``delta``) and an optional ``load``
+    factor scaling every load. Each may be a tensor that requires grad: the gradient costs one
+    extra solve with the same factor. The loads and Dirichlet values are those at load factor 1;
+    a scene needs a load or a non-zero Dirichlet value (displacement control).
 
-    ``eps`` >= 0 is the confinement of Dodwell 2019 eq 3, (eps/2) sum_i u_i.u_i: the operator on
-    the free dofs is A = K_ff + eps I (direct solver only).
+    Optional parts, used by the nonlinear solvers on ``at(params)``:
+
+    * ``damage``: a law of ``bayespd.damage`` (Dodwell 2019 eq 2, You 2023 eq 3.10); without
+      it ``quasi_static`` is nonlinear elasticity and allocates no damage state;
+    * ``noise``: the Brownian forcing sqrt(2 C) dB of Dodwell 2019 eq 4, as a callable
+      ``free_dofs -> Covariance`` (``bayespd.solvers.noise``), e.g. ``lambda dofs:
+      white_noise(sigma, len(dofs))`` or ``lambda dofs: karhunen_loeve(x, sigma, length,
+      dofs=dofs)``. A callable, not a covariance: C lives on the free dofs, which exist only
+      once the scene has split off its Dirichlet dofs, and a Karhunen-Loeve C costs an
+      eigendecomposition, paid only when a stochastic solver first asks (``covariance``);
+    * ``eps`` >= 0: the confinement of Dodwell 2019 eq 3, (eps/2) sum_i u_i.u_i: the operator on
+      the free dofs is A = K_ff + eps I (direct solver only).
     """
 
-    def __init__(self, material, dirichlet: list[Dirichlet], loads: list[Load],
-                 observation: LinearObservation | None = None, solver: str = "direct",
-                 precondition_radius: float | None = 1.5, rtol: float = 1e-10, eps: float = 0.0):
+    def __init__(self, material, dirichlet: list[Dirichlet], loads: list[Load] = (),
+                 observation: LinearObservation | None = None, *, damage=None, noise=None,
+                 eps: float = 0.0, solver: str = "direct", precondition_radius: float | None = 1.5,
+                 rtol: float = 1e-10):
         p = material.particles
         if not eps >= 0:
             raise ValueError(f"the confinement eps must be >= 0, got {eps}")
@@ -37,20 +54,26 @@ class Scene:
         self.eps = float(eps)
         if not dirichlet:
             raise ValueError("a static scene needs at least one Dirichlet region")
-        if not loads:
-            raise ValueError("a scene needs at least one Load")
         delta_max = material.bonds.delta_max
         for bc in dirichlet:
             if bc.depth is not None and bc.depth < delta_max:
                 warnings.warn(f"Dirichlet layer depth {bc.depth:g} < delta_max {delta_max:g}: "
                               "a layer thinner than the horizon under-constrains the nonlocal "
                               "boundary; constrain a layer at least one horizon thick", stacklevel=2)
+        if noise is not None and not callable(noise):
+            raise ValueError("noise must be a callable free_dofs -> Covariance, e.g. "
+                             "lambda dofs: white_noise(sigma, len(dofs))")
         self.material, self.particles, self.observation = material, p, observation
+        self.dirichlet, self.loads = list(dirichlet), list(loads)
+        self.damage, self.noise = damage, noise
         if solver not in ("direct", "pcg"):
             raise ValueError("solver must be 'direct' (CHOLMOD/SuperLU) or 'pcg' (matrix-free)")
         self.solver, self.rtol = solver, rtol
         direct = solver == "direct"
-        self.constraints = Constraints(p, material.pattern if direct else None, dirichlet)
+        self.constraints = Constraints(p, material.pattern if direct else None, self.dirichlet)
+        if not self.loads and not self.constraints.has_prescribed:
+            raise ValueError("a scene needs a Load or a Dirichlet region with a non-zero value "
+                             "(displacement control): nothing loads this one")
         # PCG: K is never assembled; the preconditioner keeps the bonds with
         # |xi| <= precondition_radius * h (None: all bonds)
         self._assembly = None if direct else Assembly(material.grams(), self.constraints.free_mask)
@@ -59,8 +82,29 @@ class Scene:
             short = material.bonds.length <= precondition_radius * p.h * (1 + 1e-9)
             self._precondition_rows = {material.grams()[0]: short}
         _refuse_floating_pieces(material.bonds, self.constraints.fixed_particles)
-        self.force = sum(load.nodal(p) for load in loads)
+        self.force = sum((load.nodal(p) for load in self.loads), torch.zeros(p.n, p.dim))
         self.param_names = material.param_names
+
+    def at(self, params: dict, loaded=None) -> LoadedBody:
+        """The scene at fixed ``params`` with exact bond kinematics (``LoadedBody``), for
+        ``quasi_static``, ``equilibrium`` and ``StochasticFracture``; ``loaded``: the particles
+        whose reaction and mean displacement are recorded (default: the Dirichlet regions with
+        a non-zero value, and the loaded regions)."""
+        self._params(params)  # refuses missing or unknown names
+        return LoadedBody(self, params, loaded)
+
+    @cached_property
+    def covariance(self) -> Covariance:
+        """C of the Brownian forcing on the free dofs, built by ``noise`` on first use."""
+        if self.noise is None:
+            raise ValueError("this scene has no Brownian noise: declare it, e.g. Scene(..., "
+                             "noise=lambda dofs: white_noise(sigma, len(dofs)))")
+        free = self.constraints.free_dofs
+        C = self.noise(free)
+        if C.n != len(free):
+            raise ValueError(f"the noise covariance must live on the {len(free)} free dofs it is "
+                             "given (pass dofs=dofs to karhunen_loeve)")
+        return C
 
     def _params(self, params: dict) -> dict:
         missing = set(self.param_names) - set(params)

@@ -24,7 +24,7 @@ from bayespd import cli
 from bayespd.damage import CriticalStretch, crack_path
 from bayespd.infer import load
 from bayespd.ensemble.demo_inputs import write_inputs
-from bayespd.scenes.notched_plate import notched_plate, plate_body
+from bayespd.scenes.notched_plate import notched_plate, plate_scene
 from bayespd.ensemble.scene import BATCH
 from bayespd.ensemble.predictive import ensemble
 from bayespd.plot import ensemble_figures
@@ -36,9 +36,9 @@ H, STEPS = 1.0, 50
 def observed_crack(scene, side, K, s0):
     """The 'observed' crack: the deterministic quasi-static path (You 2023 §5.2) at the
     calibrated K and the nominal s0 on the same plate."""
-    body = plate_body(side, H, 3, K)
-    qs = quasi_static(body, scene.load_factors, CriticalStretch(s0))
-    return crack_path(body.particles, qs.damage[-1], scene.path_threshold)
+    plate = plate_scene(side, H, 3, CriticalStretch(s0))
+    qs = quasi_static(plate, {"K": K, "delta": 3 * H}, scene.load_factors)
+    return crack_path(plate.particles, qs.damage[-1], scene.path_threshold)
 
 
 def peak_worker_memory_mb(client) -> dict:

@@ -23,7 +23,8 @@ from bayespd.atomic import atomic_path
 from bayespd.damage import CriticalStretch, crack_length, crack_path
 from bayespd.solvers import white_noise
 from bayespd.solvers.fracture import StochasticFracture
-from bayespd.solvers.quasistatic import LoadedBody, quasi_static
+from bayespd.solvers.body import LoadedBody
+from bayespd.solvers.quasistatic import quasi_static
 
 SIDE, H, M = 40.0, 1.0, 3  # plate side and spacing (mm), horizon delta = M h
 E, G0 = 3000.0, 0.5  # MPa (bond-based plane stress: E = K, nu = 1/3), fracture energy N/mm
@@ -35,20 +36,22 @@ THRESHOLD = 0.4  # phi above which a particle counts as cracked (damage-probabil
 PATH_THRESHOLD = 0.3  # for tracing paths: faces of a straight crack have phi = 0.44 (delta = 3h),
 # the next rows 0.25; on a kinked crack the faces drop to 0.3-0.4 and 0.4 cuts the path apart
 SIGMA, RELAX, DT = 1500.0, 1e4, 1.0  # noise scale, M dt lambda_min(A), time step
+PARAMS = {"K": E, "delta": DELTA}
 
 
-def plate() -> LoadedBody:
+def plate() -> bp.Scene:
     """Notch from the left edge to the centre (between particle rows); bottom layer clamped,
-    top layer pulled up by lambda mm."""
+    top layer pulled up by lambda mm; the critical stretch S0 and white noise C = SIGMA^2 I."""
     p = bp.grid_2d(SIDE, SIDE, H)
     bonds = bp.precrack(p, bp.find_bonds(p, DELTA), [[0.0, Y_NOTCH], [SIDE / 2, Y_NOTCH]])
     bcs = [bp.Dirichlet.layer(p, "bottom", DELTA), bp.Dirichlet.layer(p, "top", DELTA, (0.0, 1.0))]
-    return LoadedBody(bp.BondBased(p, bonds), {"K": E, "delta": DELTA}, bcs)
+    return bp.Scene(bp.BondBased(p, bonds), bcs, damage=CriticalStretch(S0),
+                    noise=lambda dofs: white_noise(SIGMA, len(dofs)))
 
 
-def ramp(body: LoadedBody, steps: int) -> np.ndarray:
+def ramp(scene: bp.Scene, body: LoadedBody, steps: int) -> np.ndarray:
     """Top displacements up to twice the elastic estimate of initiation, s0 / max s(u at 1 mm)."""
-    u1 = quasi_static(body, [1e-3]).u / 1e-3
+    u1 = quasi_static(scene, PARAMS, [1e-3]).u / 1e-3
     initiation = S0 / float(body.kinematics.stretch(u1).max())
     return np.linspace(2 / steps, 2.0, steps) * initiation
 
@@ -176,19 +179,19 @@ def main(quick: bool, realisations: int | None):
     out = run_dir("crack_paths")
     start = time.perf_counter()
     n_real = realisations or (4 if quick else 50)
-    body = plate()
-    lams = ramp(body, 30 if quick else 50)
+    scene = plate()
+    body = scene.at(PARAMS)
+    lams = ramp(scene, body, 30 if quick else 50)
 
     t0 = time.perf_counter()
-    qs = quasi_static(body, lams, CriticalStretch(S0))
+    qs = quasi_static(scene, PARAMS, lams)
     qs_wall = time.perf_counter() - t0
     qs_path = crack_path(body.particles, qs.damage[-1], PATH_THRESHOLD)
     qs_lengths = np.array([crack_length(crack_path(body.particles, phi, PATH_THRESHOLD)) for phi in qs.damage])
 
     mob = mobility(body)
     eta = SIGMA**2 / mob
-    noise = white_noise(SIGMA, len(body.constraints.free_dofs))
-    driver = StochasticFracture(body, CriticalStretch(S0), noise, eta)
+    driver = StochasticFracture(scene, PARAMS, eta)
     runs, rows, errors = [], [], []
     for seed in range(n_real):
         t0 = time.perf_counter()

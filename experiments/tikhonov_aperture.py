@@ -32,7 +32,7 @@ import bayespd as bp
 from bayespd import linalg
 from bayespd.damage import CriticalStretch
 from bayespd.inverse.tikhonov import tikhonov
-from bayespd.solvers.quasistatic import LoadedBody, quasi_static
+from bayespd.solvers.quasistatic import quasi_static
 from bayespd.linalg.sparse import ConvergenceError
 
 SIDE, THICK, A, Y_CRACK = 5.0, 1.0, 1.0, 2.5
@@ -75,9 +75,9 @@ def fracture(h: float, F: float):
     p, bonds = plate(h)
     material = bp.LPS(p, bonds, plane="strain")
     dirichlet, loads = regions(p)
-    body = LoadedBody(material, dict(MODULI, delta=DELTA), dirichlet, loads)
+    scene = bp.Scene(material, dirichlet, loads, damage=CriticalStretch(S0))
     steps = [F] if F <= ELASTIC_LIMIT else np.linspace(ELASTIC_LIMIT, F, RAMP)
-    res = quasi_static(body, steps, CriticalStretch(S0))
+    res = quasi_static(scene, dict(MODULI, delta=DELTA), steps)
     if res.separated:
         raise ConvergenceError(f"the plate separated at F_y = {F}")
     return p, bonds, res.intact.numpy(), res.u

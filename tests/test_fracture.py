@@ -12,32 +12,38 @@ from bayespd.solvers import karhunen_loeve, white_noise
 from bayespd import bond_loops
 from bayespd.solvers import fracture
 from bayespd.solvers.fracture import StochasticFracture
-from bayespd.solvers.quasistatic import LoadedBody, quasi_static
+from bayespd.solvers.quasistatic import quasi_static
 
 SIDE, H, DELTA, S0 = 20.0, 1.0, 3.0, 0.01
 LAMS = np.linspace(0.02, 0.7, 35)  # top layer pulled by 0.2 lambda mm
+PARAMS = {"K": 1000.0, "delta": DELTA}
 
 
-@pytest.fixture(scope="module")
-def plate():
+def notched(damage=CriticalStretch(S0), noise=None) -> bp.Scene:
     """A 20 x 20 bond-based plate notched from the left edge to the centre, bottom clamped,
     top pulled (mode I)."""
     p = bp.grid_2d(SIDE, SIDE, H)
     bonds = bp.precrack(p, bp.find_bonds(p, DELTA), [[0.0, SIDE / 2], [SIDE / 2, SIDE / 2]])
     bcs = [bp.Dirichlet.layer(p, "bottom", DELTA), bp.Dirichlet.layer(p, "top", DELTA, (0.0, 0.2))]
-    return LoadedBody(bp.BondBased(p, bonds), {"K": 1000.0, "delta": DELTA}, bcs)
+    return bp.Scene(bp.BondBased(p, bonds), bcs, damage=damage, noise=noise)
 
 
 @pytest.fixture(scope="module")
-def deterministic(plate):
-    return quasi_static(plate, LAMS, CriticalStretch(S0))
+def plate():
+    """The notched plate at PARAMS (``Scene.at``)."""
+    return notched().at(PARAMS)
 
 
-def driver(body, sigma, mobility=1e3, noise=None):
+@pytest.fixture(scope="module")
+def deterministic():
+    return quasi_static(notched(), PARAMS, LAMS)
+
+
+def driver(sigma, mobility=1e3, noise=None, damage=CriticalStretch(S0)):
     """C = sigma^2 I (or ``noise``), eta = sigma^2 / mobility: the drift eta^-1 C grad V keeps
     its rate as sigma changes, the noise scales with sigma."""
-    C = noise or white_noise(sigma, len(body.constraints.free_dofs))
-    return StochasticFracture(body, CriticalStretch(S0), C, eta=sigma**2 / mobility)
+    scene = notched(damage, noise or (lambda dofs: white_noise(sigma, len(dofs))))
+    return StochasticFracture(scene, PARAMS, eta=sigma**2 / mobility)
 
 
 @pytest.mark.parametrize("tangent, spare", [("exact", 0.0), ("lagged", 0.01)])
@@ -51,7 +57,7 @@ def test_vanishing_noise_follows_the_quasi_static_path(plate, deterministic, tan
     intact = torch.ones(plate.n_bonds)
     lam_min = sla.eigsh(plate.operator(intact, plate.active(intact)), k=1, sigma=0, return_eigenvectors=False)[0]
     assert 1e3 * lam_min > 1e4
-    run = driver(plate, 1e-6).run(LAMS, dt=1.0, seed=0, tangent=tangent)
+    run = driver(1e-6).run(LAMS, dt=1.0, seed=0, tangent=tangent)
     qs = deterministic
     assert abs(run.load_factor[run.first_failure] - LAMS[qs.first_failure]) <= LAMS[1] - LAMS[0] + 1e-12
     assert abs(run.load_factor[run.peak] - LAMS[qs.peak]) <= LAMS[1] - LAMS[0] + 1e-12
@@ -67,9 +73,8 @@ def test_the_lagged_tangent_converges_to_the_same_equilibrium(plate):
     both operators iterate to the nonlinear equilibrium of ``quasi_static`` (the W-method
     has the fixed points of the exact scheme), to 1e-9 of |u|; an unknown tangent is refused."""
     lam = 0.3
-    qs = quasi_static(plate, [lam])
-    frac = StochasticFracture(plate, CriticalStretch(1.0), white_noise(1e-9, len(plate.constraints.free_dofs)),
-                              eta=1e-18 / 1e3)
+    qs = quasi_static(notched(None), PARAMS, [lam])
+    frac = driver(1e-9, damage=CriticalStretch(1.0))
     for tangent in ("exact", "lagged"):
         run = frac.run([lam] * 25, dt=1.0, seed=0, tangent=tangent, hold=False)
         assert run.broken[-1] == 0
@@ -83,7 +88,7 @@ def test_a_seed_reproduces_its_run_and_noise_changes_the_path(plate):
     results, another seed a different damage field. Without hold the ramp advances every
     step."""
     lams = LAMS[::2]
-    frac = driver(plate, 100.0)
+    frac = driver(100.0)
     a, b, c = frac.run(lams, 1.0, seed=3), frac.run(lams, 1.0, seed=3), frac.run(lams, 1.0, seed=4)
     assert torch.equal(a.u, b.u) and np.array_equal(a.phi, b.phi) and np.array_equal(a.path, b.path)
     assert not np.array_equal(a.phi > 0.4, c.phi > 0.4)
@@ -96,10 +101,10 @@ def test_correlated_noise_runs_and_is_checked(plate):
     drift reaches every dof); a covariance on the wrong dofs is refused."""
     free = plate.constraints.free_dofs
     kl = karhunen_loeve(plate.particles.x, 1e-6, length=3.0, rank=20, nugget=1.0, dofs=free)
-    run = driver(plate, 1e-6, noise=kl).run(LAMS[::2], dt=1.0, seed=0)
+    run = driver(1e-6, noise=lambda dofs: kl).run(LAMS[::2], dt=1.0, seed=0)
     assert run.broken[-1] > 0 and np.abs(run.path[:, 1] - SIDE / 2).max() <= H
     with pytest.raises(ValueError, match="free dofs"):
-        StochasticFracture(plate, CriticalStretch(S0), white_noise(1.0, plate.particles.n * 2), 1.0)
+        driver(1.0, noise=lambda dofs: white_noise(1.0, plate.particles.n * 2))
 
 
 def test_damage_ode_breaks_when_its_clock_runs_out():
@@ -109,22 +114,25 @@ def test_damage_ode_breaks_when_its_clock_runs_out():
     tau > logit(alpha0). The driver (vanishing noise) breaks its first bond at that step."""
     p = bp.grid_2d(20.0, 4.0, H)
     bcs = [bp.Dirichlet.layer(p, "left", DELTA), bp.Dirichlet.layer(p, "right", DELTA, (0.1, 0.0))]
-    body = LoadedBody(bp.BondBased(p, bp.find_bonds(p, DELTA)), {"K": 1000.0, "delta": DELTA}, bcs)
-    s1 = float(body.kinematics.stretch(quasi_static(body, [1e-3]).u).max()) / 1e-3
     k, s_c, alpha0 = 2000.0, 0.005, 0.999
+    law = DamageODE(k=k, alpha0=alpha0, lam=np.exp(-k * s_c))
+    scene = bp.Scene(bp.BondBased(p, bp.find_bonds(p, DELTA)), bcs, damage=law,
+                     noise=lambda dofs: white_noise(1e-6, len(dofs)))
+    body = scene.at(PARAMS)
+    s1 = float(body.kinematics.stretch(quasi_static(bp.Scene(scene.material, bcs), PARAMS, [1e-3]).u).max()) / 1e-3
     lams = np.linspace(0.02, 1.0, 50)
     tau = np.cumsum(np.exp(k * (lams * s1 - s_c)))
     predicted = lams[np.argmax(tau > np.log(alpha0 / (1 - alpha0)))]
-    law = DamageODE(k=k, alpha0=alpha0, lam=np.exp(-k * s_c))
-    frac = StochasticFracture(body, law, white_noise(1e-6, len(body.constraints.free_dofs)), eta=1e-15)
+    frac = StochasticFracture(scene, PARAMS, eta=1e-15)
     run = frac.run(lams, dt=1.0, seed=0)
     assert run.load_factor[run.first_failure] == pytest.approx(predicted, abs=1e-12)
 
 
-def test_a_body_that_came_loose_everywhere_has_nothing_to_solve(plate):
+def test_a_body_that_came_loose_everywhere_has_nothing_to_solve():
     """Every bond broken (eps = 0): no dof is solved for, no operator is made, and a step
     leaves u as it is."""
-    frac = driver(plate, 1.0)
+    frac = driver(1.0)
+    plate = frac.body
     u = 0.01 * torch.ones(plate.particles.n, 2)
     gone = frac._factorised(torch.zeros(plate.n_bonds), u, 512, None, plate.floating_pieces())
     assert gone.A is None and len(gone.active) == 0

@@ -9,8 +9,7 @@ import xarray as xr
 from bayespd.ensemble import predictive
 from bayespd.infer.datatree import build_tree
 from bayespd.damage import CriticalStretch
-from bayespd.scenes.notched_plate import _unit_lambda_min, notched_plate, plate_body
-from bayespd.solvers import white_noise
+from bayespd.scenes.notched_plate import _unit_lambda_min, notched_plate, plate_scene
 from bayespd.solvers.fracture import StochasticFracture
 from bayespd.ensemble.scene import realise
 from bayespd.ensemble.stats import TIMES
@@ -46,9 +45,8 @@ def test_the_unit_body_runs_the_dynamics_of_every_modulus(noisy_scene):
     K at temperature eta = sigma^2 / M, M dt K lambda_min(A; 1) = relax, bond for bond,
     with u equal to rounding and its reactions times K equal to that body's."""
     K, s0, sigma, relax, dt = 2500.0, 0.0094, 100.0, 1e4, 1.0
-    body = plate_body(16.0, 1.0, 3, K)
     mobility = relax / (dt * K * _unit_lambda_min(16.0, 1.0, 3))
-    direct = StochasticFracture(body, CriticalStretch(s0), white_noise(sigma, len(body.constraints.free_dofs)),
+    direct = StochasticFracture(plate_scene(16.0, 1.0, 3, CriticalStretch(s0), sigma), {"K": K, "delta": 3.0},
                                 eta=sigma**2 / mobility)
     unit, at_K = (driver.run(noisy_scene.load_factors, dt, seed=5, path_threshold=0.3, tangent="lagged",
                              max_rank=noisy_scene.max_rank, zone=noisy_scene.zone)

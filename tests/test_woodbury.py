@@ -1,7 +1,7 @@
 """Solves after a local change (``bayespd.linalg.woodbury``): the Woodbury update of a factor
 equals a fresh factorisation of the changed matrix, refuses a change that makes it
 indefinite, and conjugate gradients on the exact tangent, preconditioned by a stale factor,
-converge within the iteration bound of their condition number; a ``LoadedBody``'s change
+converge within the iteration bound of their condition number; a ``Scene.at``'s change
 of operator equals the difference of its operators, and its tangent is the Hessian of the
 bond energy."""
 import math
@@ -17,7 +17,6 @@ from bayespd.solvers.fracture import StochasticFracture
 from bayespd.damage import CriticalStretch
 from bayespd.solvers import white_noise
 from bayespd.linalg.factors import shifted_factor, spd_factor
-from bayespd.solvers.quasistatic import LoadedBody
 from bayespd.linalg import trailing, woodbury
 from bayespd import bond_loops
 from bayespd.linalg.woodbury import LocallyUpdated, Refined
@@ -26,10 +25,20 @@ from bayespd.linalg.sparse import NotPositiveDefiniteError
 SIDE, H, DELTA = 12.0, 1.0, 3.0
 
 
-def body(material=bp.BondBased):
+PARAMS = {"K": 1000.0, "G": 600.0, "delta": DELTA}
+
+
+def scene(material=bp.BondBased):
+    """The plate, bottom clamped and top pulled, with the critical stretch and white noise."""
     p = bp.grid_2d(SIDE, SIDE, H)
     bcs = [bp.Dirichlet.layer(p, "bottom", DELTA), bp.Dirichlet.layer(p, "top", DELTA, (0.0, 0.1))]
-    return LoadedBody(material(p, bp.find_bonds(p, DELTA)), {"K": 1000.0, "G": 600.0, "delta": DELTA}, bcs)
+    return bp.Scene(material(p, bp.find_bonds(p, DELTA)), bcs, damage=CriticalStretch(0.01),
+                    noise=lambda dofs: white_noise(50.0, len(dofs)))
+
+
+def body(material=bp.BondBased):
+    plate = scene(material)
+    return plate.at({k: PARAMS[k] for k in plate.param_names})
 
 
 @pytest.fixture(scope="module")
@@ -123,7 +132,7 @@ def test_change_in_3d_by_the_loops_and_by_numpy(monkeypatch):
     with the damaged zone's tangent moved to a later u the two paths agree to rounding."""
     p = bp.grid_3d(5.0, 5.0, 5.0, 1.0)
     bcs = [bp.Dirichlet.layer(p, "bottom", 1.5, (0.0, 0.0, 0.0)), bp.Dirichlet.layer(p, "top", 1.5, (0.0, 0.0, 0.1))]
-    b = LoadedBody(bp.BondBased(p, bp.find_bonds(p, 1.5)), {"K": 1000.0, "delta": 1.5}, bcs)
+    b = bp.Scene(bp.BondBased(p, bp.find_bonds(p, 1.5)), bcs).at({"K": 1000.0, "delta": 1.5})
     before, after = broken(b, [3, 40]), broken(b, [3, 40, 41, 500, 501])
     active = b.active(before)
     gen = torch.Generator().manual_seed(0)
@@ -170,8 +179,7 @@ def test_fracture_with_updates_follows_fracture_with_refactorisation(plate):
     """Noisy mode-I run: the Woodbury-updated operator (conjugate gradients to 1e-8) and a
     fresh factorisation at every change break the same bonds, with the same seed."""
     lams = np.linspace(0.1, 2.0, 12)
-    C = white_noise(50.0, len(plate.constraints.free_dofs))
-    frac = StochasticFracture(plate, CriticalStretch(0.01), C, eta=50.0**2 / 1e3)
+    frac = StochasticFracture(scene(), {"K": 1000.0, "delta": DELTA}, eta=50.0**2 / 1e3)
     a = frac.run(lams, 1.0, seed=5)
     b = frac.run(lams, 1.0, seed=5, max_rank=0)
     assert a.broken[-1] > 0 and np.array_equal(a.broken, b.broken)
@@ -277,8 +285,7 @@ def test_fracture_with_a_zone_follows_fracture_without(plate, tangent, where):
     algebra differs. Exact tangent (the factor only preconditions): a zone on the crack line,
     and one away from it (every change leaves it, and each fresh factor takes in the damage)."""
     lams = np.linspace(0.1, 2.0, 12)
-    C = white_noise(50.0, len(plate.constraints.free_dofs))
-    frac = StochasticFracture(plate, CriticalStretch(0.01), C, eta=50.0**2 / 1e3)
+    frac = StochasticFracture(scene(), {"K": 1000.0, "delta": DELTA}, eta=50.0**2 / 1e3)
     y = plate.particles.x[:, 1]
     zone = {"everywhere": y > -1, "on the crack": np.abs(y - SIDE / 2) < 2, "away from it": y > SIDE - 4.5}[where]
     a = frac.run(lams, 1.0, seed=5, tangent=tangent)

@@ -6,7 +6,8 @@ from bayespd.solvers.dynamics import (NumericalInstabilityError, Trajectory, cri
 from bayespd.solvers.langevin import Langevin
 from bayespd.solvers.linear import LinearForce, largest_eigenvalue, linear_elastic
 from bayespd.solvers.noise import Covariance, KLCovariance, karhunen_loeve, white_noise
-from bayespd.solvers.quasistatic import LoadedBody, QuasiStaticResult, equilibrium, quasi_static
+from bayespd.solvers.body import LoadedBody
+from bayespd.solvers.quasistatic import QuasiStaticResult, equilibrium, quasi_static
 from bayespd.solvers.fracture import Realisation, StochasticFracture
 
 __all__ = [

@@ -1,5 +1,6 @@
-"""Stochastic fracture: overdamped Langevin dynamics (Dodwell 2019 eq 4) of a ``LoadedBody`` with
-the exact bond force, a damage law and a displacement-controlled ramp,
+"""Stochastic fracture: overdamped Langevin dynamics (Dodwell 2019 eq 4) of a ``Scene`` that
+declares a damage law and noise, at fixed params (``Scene.at``), with the exact bond force and a
+displacement-controlled ramp,
 
     dU = -eta^-1 C grad V(U; mu, lambda(t)) dt + sqrt(2 C) dB,
 
@@ -7,7 +8,7 @@ V of eq 3 on the free dofs (the moving Dirichlet layers enter through f_int), mu
 law (critical stretch or smoothed step, irreversible; or the damage ODE, which uses dt).
 
 Step n (lambda_n from the ramp): one step of ``Langevin``'s linearly implicit theta-scheme with
-operator A = T + eps I, T the tangent of ``quasistatic`` (bond-based: the Hessian with tensile
+operator A = T + eps I, T the tangent of ``body.LoadedBody`` (bond-based: the Hessian with tensile
 geometric stiffness; LPS: the damaged linearised stiffness) taken when the intact fractions
 last changed (by more than ``refactor_tol``; the sharp law: whenever a bond breaks), then
 the damage update with the new stretch. A change costs no factorisation: a factor made at
@@ -47,7 +48,6 @@ from bayespd.linalg import trailing
 from bayespd.solvers.dynamics import NumericalInstabilityError
 from bayespd.solvers.langevin import Langevin
 from bayespd.solvers.noise import Covariance
-from bayespd.solvers.quasistatic import LoadedBody
 from bayespd.linalg.woodbury import LocallyUpdated, Refined
 
 
@@ -93,25 +93,24 @@ class Realisation:
 
 
 class StochasticFracture:
-    """Dodwell 2019 eq 4 with damage for ``body`` (a ``quasistatic.LoadedBody``): ``damage`` law,
-    noise ``covariance`` C on the body's free dofs (``noise.white_noise`` or
-    ``karhunen_loeve(..., dofs=body.constraints.free_dofs)``), temperature ``eta``, and the
-    theta of the scheme (1: linearly implicit Euler, robust for the nonlinear force).
-    ``reaction_scale`` multiplies the recorded reactions: a material whose force is linear in
-    a modulus K runs as the unit-modulus body at temperature eta / K (the same dynamics), whose
-    factor then serves every K (``bayespd.scenes.notched_plate``), and reports K times its reactions."""
+    """Dodwell 2019 eq 4 with damage for ``scene`` (a ``Scene``) at ``params``: the scene's
+    ``damage`` law and noise covariance C on its free dofs (``Scene.covariance``), temperature
+    ``eta``, and the theta of the scheme (1: linearly implicit Euler, robust for the nonlinear
+    force). ``reaction_scale`` multiplies the recorded reactions: a material whose force is
+    linear in a modulus K runs as the unit-modulus body at temperature eta / K (the same
+    dynamics), whose factor then serves every K (``bayespd.scenes.notched_plate``), and
+    reports K times its reactions."""
 
-    def __init__(self, body: LoadedBody, damage, covariance: Covariance, eta: float, theta: float = 1.0,
-                 reaction_scale: float = 1.0):
-        n_free = len(body.constraints.free_dofs)
-        if covariance.n != n_free:
-            raise ValueError(f"the covariance must live on the {n_free} free dofs of the body "
-                             "(pass dofs=body.constraints.free_dofs to karhunen_loeve)")
+    def __init__(self, scene, params: dict, eta: float, theta: float = 1.0, reaction_scale: float = 1.0):
+        if scene.damage is None:
+            raise ValueError("stochastic fracture needs a damage law: declare it in the scene, "
+                             "e.g. Scene(..., damage=CriticalStretch(s0))")
+        self.C = scene.covariance  # refuses a scene without noise, naming the fix
         if not 0.5 <= theta <= 1:
             raise ValueError("theta must lie in [1/2, 1]: the operator is needed for stability")
         if not reaction_scale > 0:
             raise ValueError(f"reaction_scale must be positive, got {reaction_scale}")
-        self.body, self.damage, self.C, self.eta, self.theta = body, damage, covariance, eta, theta
+        self.body, self.damage, self.eta, self.theta = scene.at(params), scene.damage, eta, theta
         self.reaction_scale = float(reaction_scale)
 
     def run(self, load_factors, dt: float, seed, hold: bool = True, max_steps: int | None = None,

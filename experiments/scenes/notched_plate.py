@@ -7,9 +7,10 @@ The mobility M = sigma^2 / eta is set so that M dt lambda_min(A) = ``relax`` (on
 the elastic field); the bond-based operator is linear in K (c = 9 K / (pi t delta^3)), so
 lambda_min(A; K) = K lambda_min(A; 1), found once per process. The force is linear in K too,
 so eq 4 at K is eq 4 of the unit-modulus body at temperature eta / K = sigma^2 dt
-lambda_min(A; 1) / relax, which does not depend on K: every draw runs the same unit body
-(one per process) with the same step operator, whose factor is made once per process
-(``trailing.shared``), and only its reactions are scaled by K.
+lambda_min(A; 1) / relax, which does not depend on K: every draw runs a ``Scene`` of the same
+unit-modulus material (built once per process) with its own critical stretch, and the same step
+operator, whose factor is made once per process (``trailing.shared``); only its reactions are
+scaled by K.
 """
 from __future__ import annotations
 
@@ -23,7 +24,7 @@ import bayespd as bp
 from bayespd.damage import CriticalStretch
 from bayespd.solvers import white_noise
 from bayespd.solvers.fracture import StochasticFracture
-from bayespd.solvers.quasistatic import LoadedBody, quasi_static
+from bayespd.solvers.quasistatic import quasi_static
 
 from bayespd.ensemble.scene import FractureScene
 
@@ -38,10 +39,22 @@ def _geometry(side: float, h: float, m: int):
     return bp.BondBased(p, bonds), bcs, delta
 
 
-def plate_body(side, h, m, K) -> LoadedBody:
-    """The plate as a ``LoadedBody`` at bulk modulus K (top layer at unit displacement)."""
-    material, bcs, delta = _geometry(side, h, m)
-    return LoadedBody(material, {"K": K, "delta": delta}, list(bcs))
+def plate_scene(side, h, m, damage=None, sigma=None) -> bp.Scene:
+    """The plate (top layer at unit displacement) with an optional damage law and white
+    noise C = sigma^2 I; its params are {"K": ..., "delta": m h}."""
+    material, bcs, _ = _geometry(side, h, m)
+    noise = None if sigma is None else partial(_white_noise, sigma)
+    return bp.Scene(material, list(bcs), damage=damage, noise=noise)
+
+
+def _white_noise(sigma, dofs):
+    return white_noise(sigma, len(dofs))
+
+
+@lru_cache(maxsize=4)
+def _unit_body(side, h, m):
+    """The intact unit-modulus plate at fixed params (``Scene.at``), built once per process."""
+    return plate_scene(side, h, m).at({"K": 1.0, "delta": m * h})
 
 
 @lru_cache(maxsize=4)
@@ -55,22 +68,16 @@ def _unit_lambda_min(side, h, m) -> float:
     return float(sla.eigsh(A, k=1, sigma=0, v0=v0, return_eigenvectors=False)[0])
 
 
-@lru_cache(maxsize=4)
-def _unit_body(side, h, m) -> LoadedBody:
-    """The unit-modulus plate every driver of a process shares (module docstring)."""
-    return plate_body(side, h, m, 1.0)
-
-
 def plate_driver(params: dict, *, side, h, m, sigma, relax, dt) -> StochasticFracture:
-    """The stochastic fracture driver at ``params = {"K": ..., "s0": ...}``: the unit body at
-    temperature sigma^2 dt lambda_min(A; 1) / relax, its reactions times K (module docstring)."""
+    """The stochastic fracture driver at ``params = {"K": ..., "s0": ...}``: the unit-modulus
+    plate at temperature sigma^2 dt lambda_min(A; 1) / relax, its reactions times K (module
+    docstring)."""
     K, s0 = params["K"], params["s0"]
     if not (K > 0 and s0 > 0):
         raise ValueError(f"K and s0 must be positive, got K={K}, s0={s0}")
-    body = _unit_body(side, h, m)
-    noise = white_noise(sigma, len(body.constraints.free_dofs))
     eta = sigma**2 * dt * _unit_lambda_min(side, h, m) / relax
-    return StochasticFracture(body, CriticalStretch(s0), noise, eta=eta, reaction_scale=K)
+    return StochasticFracture(plate_scene(side, h, m, CriticalStretch(s0), sigma), {"K": 1.0, "delta": m * h},
+                              eta=eta, reaction_scale=K)
 
 
 def notched_plate(side: float = 40.0, h: float = 1.0, m: int = 3, s0_nominal: float = 0.0094,
@@ -92,7 +99,7 @@ def notched_plate(side: float = 40.0, h: float = 1.0, m: int = 3, s0_nominal: fl
     if not (side > 0 and h > 0 and side / h >= 8 and int(m) == m and m >= 2):
         raise ValueError("need side >= 8 h, h > 0 and an integer horizon factor m >= 2")
     body = _unit_body(side, h, m)
-    unit = quasi_static(body, [1e-3]).u / 1e-3
+    unit = quasi_static(plate_scene(side, h, m), {"K": 1.0, "delta": m * h}, [1e-3]).u / 1e-3
     initiation = s0_nominal / float(body.kinematics.stretch(unit).max())
     lams = np.linspace(reach / steps, reach, steps) * initiation
     x = np.asarray(body.particles.x)

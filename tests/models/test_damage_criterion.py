@@ -14,7 +14,7 @@ import torch
 import bayespd as bp
 from bayespd.damage import SmoothStep
 from bayespd.infer import fit
-from bayespd.solvers.quasistatic import LoadedBody, quasi_static
+from bayespd.solvers.quasistatic import quasi_static
 from bayespd.models.damage_criterion import damage_criterion
 from bayespd.models.load_from_aperture import aperture_observation
 from bayespd.models.smooth_fracture import SmoothFracture
@@ -37,8 +37,8 @@ def plate():
 
 def bond_breaking_openings(material, dirichlet, obs, lam, step):
     """Reference: bayespd.solvers.quasistatic (exact bond kinematics, staggered damage updates)."""
-    body = LoadedBody(material, {"K": 1.0, "delta": DELTA}, dirichlet)
-    res = quasi_static(body, np.linspace(step, lam, int(round(lam / step))), SmoothStep(S0, ETA), damage_tol=1e-9)
+    scene = bp.Scene(material, dirichlet, damage=SmoothStep(S0, ETA))
+    res = quasi_static(scene, {"K": 1.0, "delta": DELTA}, np.linspace(step, lam, int(round(lam / step))), damage_tol=1e-9)
     return obs(res.u)
 
 
