@@ -7,7 +7,7 @@ from scipy.integrate import quad
 
 import bayespd as bp
 from bayespd.influence import Bernstein, Conical, Constant, Gaussian
-from tests.materials.test_lps import classical_energy_density, interior
+from tests.materials.test_lps import classical_energy_density
 
 E, NU = 4000.0, 0.3
 D = torch.tensor([1.0, 2.0, 0.5, 0.3])
@@ -42,9 +42,9 @@ def test_lps_patch_and_energy_with_any_influence(lattice, influence, extra):
     x = torch.as_tensor(p.x)
     eps = torch.tensor([[1e-3, 4e-4], [4e-4, -2e-3]])
     f = mat.pattern.matvec(mat.stiffness(dict(params, delta=3.0)), (x @ eps.T).reshape(-1)).reshape(-1, 2)
-    inner = interior(p, 2 * 3.5 + 1e-9)
+    inner = p.interior(2 * 3.5 + 1e-9)
     assert f[inner].abs().max() <= 1e-10 * f[~inner].abs().max()
-    near = interior(p, 3.5 + 1e-9)
+    near = p.interior(3.5 + 1e-9)
 
     def W(e):
         return mat.energy_density(dict(params, delta=3.0), x @ torch.as_tensor(e).T)[near]
@@ -69,7 +69,7 @@ def test_bond_based_calibration_converges_for_any_influence(influence, extra):
         p = bp.grid_2d(8.0 * m, 8.0 * m, 1.0)
         mat = bp.BondBased(p, bp.find_bonds(p, float(m)), influence=influence)
         W = mat.energy_density(dict(extra, K=K, delta=float(m)), strain * torch.as_tensor(p.x))
-        inner = interior(p, m + 0.5 + 1e-9)
+        inner = p.interior(m + 0.5 + 1e-9)
         errors.append(abs(float(W[inner].mean()) - classical) / classical)
     assert errors[1] < 0.4 * errors[0] and errors[1] < 0.025, errors
 
