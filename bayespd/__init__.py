@@ -20,7 +20,8 @@ from bayespd.meshes import from_mesh  # noqa: E402
 from bayespd.gmrf import GMRF  # noqa: E402
 from bayespd.nonlinear import NonlinearBonds  # noqa: E402
 from bayespd.problem import Scene  # noqa: E402
-from bayespd.linalg.sparse import ConvergenceError, NotPositiveDefiniteError, solve  # noqa: E402
+from bayespd.linalg.adjoint import solve  # noqa: E402
+from bayespd.linalg.sparse import ConvergenceError, NotPositiveDefiniteError  # noqa: E402
 
 __all__ = [
     "Particles", "grid_2d", "grid_3d", "from_points", "from_mesh", "Bonds", "find_bonds", "check_horizon",

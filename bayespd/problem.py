@@ -14,7 +14,7 @@ from bayespd.connectivity import floating_particles
 from bayespd.linalg.stiffness_solver import Assembly
 from bayespd.boundary import Constraints, Dirichlet, Load
 from bayespd.observe import LinearObservation
-from bayespd.linalg.sparse import ValuesForm, solve_form
+from bayespd.linalg.adjoint import ValuesForm, solve_form
 from bayespd.solvers.noise import Covariance
 from bayespd.solvers.body import LoadedBody
 

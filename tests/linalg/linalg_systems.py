@@ -4,6 +4,7 @@ import scipy.sparse as sp
 import torch
 
 import bayespd as bp
+from bayespd.linalg.sparse import Pattern
 
 
 def lps_terms(nx=14, ny=8, m=2.6, delta=2.4, plane="stress"):
@@ -25,3 +26,9 @@ def grid_spd(side: int = 12, shift: float = 2.0, scale: float = 1e-3) -> sp.csc_
     M = M.tocsc()
     M.sort_indices()
     return M
+
+
+def csc_pattern(M):
+    """(Pattern, values) of a scipy CSC matrix."""
+    cols = np.repeat(np.arange(M.shape[0]), np.diff(M.indptr))
+    return Pattern(M.indices, cols, M.shape[0]), torch.as_tensor(M.data)

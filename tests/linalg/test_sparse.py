@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from bayespd.linalg import sparse
-from tests.linalg.linalg_systems import grid_spd
+from tests.linalg.linalg_systems import csc_pattern, grid_spd
 
 BACKENDS = ["splu"] + (["cholmod"] if sparse.cholmod is not None else [])
 
@@ -34,11 +34,6 @@ def test_factor_threads_keep_a_worker_limit():
         assert count() == 1
 
 
-def csc_pattern(M):
-    cols = np.repeat(np.arange(M.shape[0]), np.diff(M.indptr))
-    return sparse.Pattern(M.indices, cols, M.shape[0]), torch.as_tensor(M.data)
-
-
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_factor_solves_to_rounding(backend):
     """A factor's solve has relative residual <= 1e-12 for one and several right-hand sides;
@@ -51,19 +46,6 @@ def test_factor_solves_to_rounding(backend):
         x = factor.solve(b)
         assert np.linalg.norm(spd @ x - b) <= 1e-12 * np.linalg.norm(b)
     assert (factor.cholmod is not None) == (backend == "cholmod")
-
-
-def test_solve_matches_dense_and_refuses_an_indefinite_matrix():
-    spd = grid_spd()
-    pattern, values = csc_pattern(spd)
-    rhs = torch.as_tensor(np.random.default_rng(1).standard_normal(spd.shape[0]))
-    exact = np.linalg.solve(spd.toarray(), rhs.numpy())
-    u = sparse.solve(pattern, values, rhs).numpy()
-    assert np.abs(u - exact).max() <= 1e-12 * np.abs(exact).max()
-    diagonal = torch.zeros(pattern.nnz)
-    diagonal[pattern.position(np.arange(pattern.n), np.arange(pattern.n))] = 1.0
-    with pytest.raises(sparse.NotPositiveDefiniteError):
-        sparse.solve(pattern, values - 3.0 * diagonal, rhs)
 
 
 def test_pattern_declares_its_node_blocks():
