@@ -12,7 +12,7 @@ they may share bodies and caches, and nothing contends for the interpreter.
 Bit for bit: a column's result does not depend on the other columns of its block or on its
 place there, but it does depend on the block's width (BLAS-3 kernels add in another order
 than BLAS-2 ones), so every solve of a lock-step run is done in blocks of exactly W columns:
-a job gives the same bits alone as in any company (tests/test_lockstep.py).
+a job gives the same bits alone as in any company (tests/linalg/test_lockstep.py).
 """
 from __future__ import annotations
 

@@ -8,7 +8,7 @@ from torch.distributions import MultivariateNormal, kl_divergence
 
 from bayespd.infer.likelihoods import NoiseCovariance, StationaryMarginal, euler_maruyama_transition
 from bayespd.infer.pseudo_true import chain_kl, euler_maruyama_chain, kl_projection
-from tests.test_brownian_bias import make_scene, tensors
+from tests.infer.test_likelihoods import make_scene, tensors
 
 MATERIAL = ("K", "G", "delta")
 THETA0 = {"K": 3000.0, "G": 1400.0, "delta": 2.2, "eta": 0.002, "sigma": 2e-4}

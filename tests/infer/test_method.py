@@ -12,7 +12,7 @@ from pyro import poutine
 from scipy import stats
 
 from bayespd.infer import HMC, METHODS, NUTS, SVI, Draws, Laplace, Method, fit, register
-from tests.test_infer import HIGH, LOW, N, PRIOR_SD, model
+from tests.infer.test_fit import HIGH, LOW, N, PRIOR_SD, model
 
 Y = {"y": 1.5 + torch.randn(N, generator=torch.Generator().manual_seed(0))}
 

@@ -14,7 +14,7 @@ from scipy.stats import multivariate_normal, norm
 from bayespd.cli import main
 from bayespd.infer import fit, save, summary
 from bayespd.infer.mixture import allocate, cells, harmonic_log_mass, kept, laplace_log_mass, merged, stratified
-from tests.test_laplace import two_basins
+from tests.infer.test_laplace import two_basins
 
 DATA = {"y": torch.tensor(4.0)}
 START = {"x": -0.5}  # the prior median: a single search descends into the -2 basin
@@ -165,7 +165,7 @@ def test_weighted_svi_mixes_the_guides_by_their_evidence():
 def test_one_mode_weighted_is_the_plain_fit_bit_for_bit():
     """A unimodal posterior (the linear Gaussian model): every search ends at one mode, and
     the weighted fit's chains are the plain fit's, draw for draw."""
-    from tests.test_laplace import Y, linear
+    from tests.infer.test_laplace import Y, linear
 
     start = {"theta": [0.5, -1.0, 2.0], "s": 1.0}  # not Pyro's median of random prior draws
     options = dict(num_samples=50, num_warmup=50, num_chains=2, chains="sequential", init="map",
