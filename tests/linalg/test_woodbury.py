@@ -1,9 +1,8 @@
 """Solves after a local change (``bayespd.linalg.woodbury``): the Woodbury update of a factor
 equals a fresh factorisation of the changed matrix, refuses a change that makes it
 indefinite, and conjugate gradients on the exact tangent, preconditioned by a stale factor,
-converge within the iteration bound of their condition number; a ``Scene.at``'s change
-of operator equals the difference of its operators, and its tangent is the Hessian of the
-bond energy."""
+converge within the iteration bound of their condition number (the change of a
+``Scene.at``'s operator itself is tested in ``tests/solvers/test_body.py``)."""
 import math
 
 import numpy as np
@@ -18,7 +17,6 @@ from bayespd.damage import CriticalStretch
 from bayespd.solvers import white_noise
 from bayespd.linalg.factors import shifted_factor, spd_factor
 from bayespd.linalg import trailing, woodbury
-from bayespd import bond_loops
 from bayespd.linalg.woodbury import LocallyUpdated, Refined
 from bayespd.linalg.sparse import NotPositiveDefiniteError
 
@@ -107,72 +105,6 @@ def test_conjugate_gradients_on_the_exact_tangent_meet_their_bound(plate):
     assert np.linalg.norm(M @ x - r) <= 1e-8 * np.linalg.norm(r)
     assert 1 <= exact.iterations <= math.ceil(math.log(2 / 1e-8) / math.log(1 / rho))
     assert kappa > 1.001  # the geometric part does change the operator
-
-
-@pytest.mark.parametrize("compiled", [True, False])
-@pytest.mark.parametrize("material", [bp.BondBased, bp.LPS])
-def test_change_matches_the_assembled_operators(monkeypatch, material, compiled):
-    """The change (compiled bond loops or numpy) equals the difference of the assembled
-    operators to rounding, on the rows it touches and nowhere else."""
-    monkeypatch.setattr(bond_loops, "ENABLED", compiled)
-    b = body(material)
-    before, after = broken(b, [3, 40]), broken(b, [3, 40, 41, 500])
-    after[7] = 0.3
-    active = b.active(before)
-    u = 0.02 * torch.randn(b.particles.n, 2, generator=torch.Generator().manual_seed(0))
-    change = b.operator_change(before, after, active, u)
-    direct = (b.operator(after, active, u) - b.operator(before, active, u)).toarray()
-    assert np.abs(change @ np.eye(len(active)) - direct).max() <= 1e-12 * np.abs(direct).max()
-    assert np.array_equal(change.rows, np.flatnonzero(np.abs(direct).max(1) > 0))
-
-
-def test_change_in_3d_by_the_loops_and_by_numpy(monkeypatch):
-    """A bond-based cube, clamped at the bottom and pulled at the top: at one u the change
-    equals the difference of the assembled operators, by the compiled loops and by numpy;
-    with the damaged zone's tangent moved to a later u the two paths agree to rounding."""
-    p = bp.grid_3d(5.0, 5.0, 5.0, 1.0)
-    bcs = [bp.Dirichlet.layer(p, "bottom", 1.5, (0.0, 0.0, 0.0)), bp.Dirichlet.layer(p, "top", 1.5, (0.0, 0.0, 0.1))]
-    b = bp.Scene(bp.BondBased(p, bp.find_bonds(p, 1.5)), bcs).at({"K": 1000.0, "delta": 1.5})
-    before, after = broken(b, [3, 40]), broken(b, [3, 40, 41, 500, 501])
-    active = b.active(before)
-    gen = torch.Generator().manual_seed(0)
-    u, later = (0.02 * torch.randn(p.n, 3, generator=gen) for _ in range(2))
-    direct = (b.operator(after, active, u) - b.operator(before, active, u)).toarray()
-    dense = {}
-    for compiled in (True, False):
-        monkeypatch.setattr(bond_loops, "ENABLED", compiled)
-        change = b.operator_change(before, after, active, u)
-        assert len(change.rows) >= 12  # the dofs of at least the four ends of the changed bonds
-        assert np.abs(change @ np.eye(len(active)) - direct).max() <= 1e-12 * np.abs(direct).max()
-        dense[compiled] = b.operator_change(before, after, active, u, later) @ np.eye(len(active))
-    assert np.abs(dense[True] - dense[False]).max() <= 1e-12 * np.abs(dense[False]).max()
-
-
-def test_change_takes_in_every_bond_between_the_changed_ends(plate):
-    """The bonds whose tangent a change re-evaluates are read from the changed ends' own
-    bonds: the same sorted set as a pass over every bond, for sparse to dense sets of ends."""
-    rng = np.random.default_rng(0)
-    i, j = plate.bonds.i, plate.bonds.j
-    for fraction in (0.0, 0.02, 0.2, 0.6, 1.0):
-        ends = rng.random(plate.particles.n) < fraction
-        assert np.array_equal(plate._bonds_among(ends), np.flatnonzero(ends[i] & ends[j]))
-
-
-def test_bond_based_tangent_is_the_hessian_in_tension(plate):
-    """Every bond stretched (1 % in both directions plus a perturbation of 0.1 %), so the
-    geometric part is on everywhere: T v equals the central difference of -f_int along v
-    to O(h^2) (relative 1e-7 at h = 1e-4 |u|)."""
-    intact = broken(plate, [10, 11, 300])
-    active = plate.active(intact)
-    x = torch.as_tensor(plate.particles.x)
-    u = 0.01 * (x - x.mean(0)) + 1e-4 * torch.randn(plate.particles.n, 2, generator=torch.Generator().manual_seed(1))
-    v = torch.zeros_like(u)
-    v.view(-1)[torch.as_tensor(active)] = torch.randn(len(active), generator=torch.Generator().manual_seed(2), dtype=u.dtype)
-    h = 1e-4 * float(u.abs().max())
-    fd = (plate.internal(u - h * v, intact) - plate.internal(u + h * v, intact)) / (2 * h)
-    Tv = plate.operator(intact, active, u) @ v.view(-1)[torch.as_tensor(active)].numpy()
-    expected = fd.view(-1)[torch.as_tensor(active)].numpy()
-    assert np.abs(Tv - expected).max() <= 1e-7 * np.abs(expected).max()
 
 
 def test_fracture_with_updates_follows_fracture_with_refactorisation(plate):
