@@ -12,7 +12,7 @@ import pytest
 import torch
 import xarray as xr
 from scipy import stats
-from torch.distributions import biject_to, constraints
+from torch.distributions import biject_to
 
 from bayespd.infer import ChainDivergedError, ScaledBeta, fit, load, save, summary, to_inference_data
 from bayespd.linalg.sparse import NotPositiveDefiniteError
@@ -232,29 +232,6 @@ def test_not_positive_definite_is_a_divergence(y, exact):
 def test_fit_rejects_unknown_method(y):
     with pytest.raises(ValueError, match="method"):
         fit(model, {"y": y}, method="gibbs")
-
-
-def test_scaled_beta():
-    d = ScaledBeta(LOW, HIGH, 2.0, 3.0)
-    x = torch.linspace(0.6, 1.9, 7)
-    beta = dist.Beta(2.0, 3.0)
-    expected = beta.log_prob((x - LOW) / (HIGH - LOW)) - math.log(HIGH - LOW)
-    torch.testing.assert_close(d.log_prob(x), expected)
-    assert isinstance(d.support, constraints.interval)
-    assert (d.support.lower_bound, d.support.upper_bound) == (LOW, HIGH)
-    to_x = biject_to(d.support)  # what NUTS and the autoguides use
-    ends = to_x(torch.tensor([-40.0, 0.0, 40.0]))
-    assert ends[0] >= LOW and ends[2] <= HIGH and ends[1] == pytest.approx((LOW + HIGH) / 2)
-    torch.testing.assert_close(to_x.inv(x), torch.logit((x - LOW) / (HIGH - LOW)))
-    pyro.set_rng_seed(0)
-    draws = d.sample((20000,))
-    assert float(draws.min()) > LOW and float(draws.max()) < HIGH
-    assert float(d.mean) == pytest.approx(LOW + (HIGH - LOW) * 2 / 5)
-    mcse = math.sqrt(float(d.variance) / 20000)
-    assert float(draws.mean()) == pytest.approx(float(d.mean), abs=4 * mcse)
-    assert d.expand([3]).sample().shape == (3,)
-    with pytest.raises(ValueError):
-        ScaledBeta(2.0, 1.0)
 
 
 def test_hmc_recovers_conjugate_posterior(y, exact):
