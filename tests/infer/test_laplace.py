@@ -147,49 +147,6 @@ def test_laplace_on_a_scene_and_gauss_newton_close_to_exact(plate):
         assert abs(draws.mean() - truth) < 3 * draws.std()
 
 
-class _Potential:
-    """A duck-typed unconstrained space: ``initial`` and ``potential(z)``."""
-
-    def __init__(self, f, start):
-        self.initial = torch.tensor(start, dtype=torch.float64)
-        self.potential = f
-
-
-def test_map_search_warns_when_it_ends_on_a_kink():
-    """|z - 1| + z^2/100 has its minimum on a kink at z = 1 (|grad| there is about 1, not
-    0): the search must say so; the smooth (z - 1)^2 must not warn."""
-    from bayespd.infer.mode import find_map
-    kink = _Potential(lambda z: (z - 1).abs().sum() + (z**2).sum() / 100, [4.0])
-    with pytest.warns(RuntimeWarning, match="gradient does not vanish"):
-        z, *_ = find_map(kink, progress=False)
-    assert abs(float(z[0]) - 1) < 1e-6
-    smooth = _Potential(lambda z: ((z - 1) ** 2).sum(), [4.0])
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        z, *_ = find_map(smooth, progress=False)
-    assert abs(float(z[0]) - 1) < 1e-6
-
-
-def test_map_search_backs_off_from_refused_parameters():
-    """A trial point the model refuses (a modulus over- or underflowed) is an infinite
-    potential, not an error: (z - 3)^2 with every z > 2 refused ends near 2, from below."""
-    from bayespd.infer.mode import find_map
-    from bayespd.materials import ParameterRangeError
-
-    refused = []
-
-    def f(z):
-        if float(z.detach().max()) > 2:
-            refused.append(float(z.detach().max()))
-            raise ParameterRangeError("K must be positive")
-        return ((z - 3) ** 2).sum()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # it ends on the boundary, not a mode
-        z, *_ = find_map(_Potential(f, [0.0]), progress=False)
-    assert refused, "the search never tried a refused point: the test does not test"
-    assert 1.9 < float(z[0]) <= 2
-
-
 def two_basins(y, pull_sd):
     """x ~ N(-1/2, 2^2), y ~ N(x^2, 1/2^2) with y = 4 (modes near x = -2 and +2), and a
     second datum 2 ~ N(x, pull_sd^2) that favours +2: potential gap U(-2) - U(+2) =
@@ -224,42 +181,3 @@ def test_map_from_several_starts_finds_the_lower_basin(pull_sd, close):
     assert any("multimodal" in str(w.message) for w in caught) == close
     with pytest.raises(ValueError, match="init='map'"):
         fit(model, data, "nuts", map_starts=8, progress=False)
-
-
-def test_prior_starts_are_a_latin_hypercube():
-    """Eight starts of two independent sites: each site has exactly one start in each
-    eighth of its prior (CDF values, up to 4 sd of the empirical quantile of 128 draws),
-    and the two sites' bands are not paired in order."""
-    from bayespd.infer.mode import prior_starts
-
-    def model():
-        pyro.sample("a", dist.Normal(0.0, 1.0))
-        pyro.sample("b", dist.LogNormal(1.0, 0.5))
-
-    space = Unconstrained(model, {}, init_to_median)
-    z = torch.stack(prior_starts(space, model, {}, init_to_median, 8, seed=4))
-    values = space.constrain(z)
-    cdf = {"a": dist.Normal(0.0, 1.0).cdf(values["a"]), "b": dist.Normal(1.0, 0.5).cdf(values["b"].log())}
-    centres = (np.arange(8) + 0.5) / 8
-    sd = np.sqrt(centres * (1 - centres) / 128)
-    for k in cdf:
-        got = np.sort(cdf[k].numpy())
-        assert np.all(np.abs(got - centres) <= 4 * sd), (k, got)
-    assert not np.array_equal(np.argsort(values["a"].numpy()), np.argsort(values["b"].numpy()))
-
-
-def test_search_ends_are_one_mode_unless_a_barrier_separates_them():
-    """On the two-basin model: x = 1.9 and x = 2.0 (one basin) are one mode, x = -2 and
-    x = +2 are two (the potential at x = 0 is ~32 nats above them)."""
-    from functools import partial
-
-    from bayespd.infer.mode import separated
-
-    space = Unconstrained(partial(two_basins, pull_sd=2.0), {"y": torch.tensor(4.0)}, init_to_median)
-
-    def at(x):
-        z = torch.tensor([x], dtype=torch.float64)
-        return z, float(space.potential(z))
-
-    assert not separated(space, *at(1.9), *at(2.0))
-    assert separated(space, *at(-2.0), *at(2.0))
