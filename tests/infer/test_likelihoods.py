@@ -1,5 +1,6 @@
 """Brownian-bias likelihoods (Dodwell 2019 eqs 3-4): the stationary marginal and the Euler-Maruyama
-transition against dense references, their gradients, and recovery of eta from simulated data.
+transition against dense references, their gradients, and recovery of eta from simulated data
+(the Pyro models of ``models/brownian_bias.py`` are tested in ``tests/models/test_brownian_bias.py``).
 
 The recovery tests use data from the calibrated model itself (same discretisation): they check
 that likelihood, gradients and optimiser find the truth within the Laplace posterior sd. Data
@@ -14,8 +15,8 @@ import torch
 
 import bayespd as bp
 from bayespd.infer.likelihoods import NoiseCovariance, StationaryMarginal, transition_log_likelihood
-from bayespd.solvers import Langevin, karhunen_loeve, linear_elastic, white_noise
-from bayespd.models.brownian_bias import frames_data, stationary, trajectory
+from bayespd.solvers import karhunen_loeve
+from bayespd.models.brownian_bias import stationary
 
 EPS = 0.05
 TRUTH = {"K": 3000.0, "G": 1400.0, "delta": 2.2, "eta": 0.002, "sigma": 2e-4, "sigma_c": 0.3, "length": 1.5}
@@ -183,40 +184,3 @@ def test_stationary_recovery_and_separability(frames):
     for k in ("eta", "sigma"):
         ratio = fits[10][k][1] / fits[40][k][1]
         assert 1.5 < ratio < 2.7, (k, ratio, fits)
-
-
-def test_stationary_model_runs_in_pyro(frames):
-    """The Pyro model scores the same log-likelihood (prior terms aside) as the likelihood."""
-    from pyro import poutine
-    scene, y = frames
-    model = stationary(scene, {"K": 2500.0, "G": 1200.0}, eta_nominal=0.005, noise_scale=1e-3)
-    data = frames_data(scene, y[:3].reshape(3, -1, 2))
-    trace = poutine.trace(poutine.condition(model, data=tensors((*MATERIAL, "eta", "sigma")))).get_trace(**data)
-    expected = model.marginal.log_likelihood(y[:3], tensors(MATERIAL), TRUTH["eta"], TRUTH["sigma"])
-    assert abs(float(trace.nodes["y"]["fn"].log_prob(data["y"]).sum() - expected)) < 1e-9 * abs(float(expected))
-
-
-def test_trajectory_recovery_white_noise():
-    """MAP of (K, G, eta, sigma_c) (delta known) from a 200-step Euler-Maruyama path simulated
-    by bayespd.solvers.Langevin (white C, the model's own chain) lies within 3 Laplace sd."""
-    scene = make_scene()
-    c = scene.constraints
-    params = tensors(MATERIAL)
-    force = linear_elastic(scene.material, params, load=scene.force, eps=EPS, constraints=c)
-    C = white_noise(TRUTH["sigma_c"], force.n)
-    langevin = Langevin(force, C, TRUTH["eta"], operator=force.matrix)
-    dt = 0.5 * langevin.explicit_limit()
-    path = langevin.euler_maruyama(force.equilibrium(), dt, 200, generator=11, save_every=1).u
-    model = trajectory(scene, {"K": 2500.0, "G": 1200.0}, eta_nominal=0.02, sigma_c_nominal=0.5, dt=dt)
-    names = ("K", "G", "eta", "sigma_c")
-
-    def log_posterior(v):
-        conditioned = dict(v, delta=torch.tensor(TRUTH["delta"]))
-        from pyro import poutine
-        trace = poutine.trace(poutine.condition(model, data=conditioned)).get_trace(y=path[1:], u0=path[0])
-        return trace.log_prob_sum() + sum(torch.log(v[k]) for k in names)  # Jacobian of exp
-
-    fit = laplace(log_posterior, names, TRUTH)
-    for k in names:
-        value, sd = fit[k]
-        assert abs(value - TRUTH[k]) < 3 * sd, (k, value, sd, TRUTH[k])
