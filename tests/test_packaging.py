@@ -52,3 +52,17 @@ def test_wheel_installs_models_and_scenes_under_the_library(tmp_path):
                          text=True).stdout.split()
     assert out[1] == "bayespd.models.elastic_plate"
     assert all(Path(f).is_relative_to(env_site) for f in (out[0], out[2], out[3])), out
+
+
+def test_every_module_has_its_test_file():
+    """tests/ mirrors the package: bayespd/<package>/<module>.py is tested in
+    tests/<package>/test_<module>.py, models/<name>.py in tests/models/test_<name>.py."""
+    modules = [m for m in (ROOT / "bayespd").rglob("*.py") if m.name != "__init__.py"]
+    modules += [m for m in (ROOT / "models").glob("*.py") if m.name != "__init__.py"]
+    missing = []
+    for module in modules:
+        folder = module.parent.relative_to(ROOT)
+        folder = folder.relative_to("bayespd") if folder.parts[0] == "bayespd" else folder
+        if not (ROOT / "tests" / folder / f"test_{module.name}").exists():
+            missing.append(str(module.relative_to(ROOT)))
+    assert missing == []
