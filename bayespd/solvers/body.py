@@ -21,7 +21,8 @@ is dropped: the confinement of eq 3 holds such pieces.
 """
 from __future__ import annotations
 
-from functools import cached_property, lru_cache
+import weakref
+from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
@@ -254,13 +255,21 @@ class LoadedBody:
         return self._patterns[key]
 
 
-@lru_cache(maxsize=4)
+_SOURCES = weakref.WeakKeyDictionary()  # material -> tangent_sources, as long as the material lives
+
+
 def tangent_sources(material) -> np.ndarray:
     """For each entry of a bond-based ``material``'s pattern, its place in [-H (bonds, d, d),
     S (particles, d, d)]: an off-diagonal block belongs to one bond (H symmetric serves ij and
     ji), a diagonal block is the sum S over a particle's bonds. It depends on the material
-    alone, so it is kept for the latest four: the bodies of an ensemble's draws, one scene
-    each on a shared material (``bayespd.scenes.notched_plate``), make it once."""
+    alone, so it is made once per material: the bodies of an ensemble's draws, one scene each
+    on a shared material (``bayespd.scenes.notched_plate``), share it."""
+    if material not in _SOURCES:
+        _SOURCES[material] = _tangent_sources(material)
+    return _SOURCES[material]
+
+
+def _tangent_sources(material) -> np.ndarray:
     n, d, pattern = material.particles.n, material.particles.dim, material.pattern
     i, j = material.bonds.i, material.bonds.j
 
