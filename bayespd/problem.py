@@ -201,6 +201,11 @@ class Scene:
         return torch.sparse_coo_tensor(np.stack([H.row, H.col]), H.data, H.shape,
                                        check_invariants=True).coalesce()
 
+    def predict(self, params: dict) -> torch.Tensor:
+        """The observations (points, dim) at equilibrium, differentiable (twice): what a
+        likelihood compares with data (a ``bayespd.reduced.ReducedScene`` gives the same)."""
+        return self.observe(self.solve(params))
+
     def observe(self, u: torch.Tensor) -> torch.Tensor:
         if self.observation is None:
             raise ValueError("this scene has no observation operator")

@@ -4,6 +4,9 @@
                           ScaledBeta(h, delta_max, 2, 2), HalfNormal(noise_scale))
     y     ~ Normal(H u(K, G, delta), sigma)    (masked points allowed)
 
+The scene may be a ``bayespd.reduced.ReducedScene``: the same model at the cost of an r x r
+solve, with its error estimate reported per draw in ``sample_stats`` by ``fit``.
+
 Any prior can be replaced through ``priors={"K": dist.LogNormal(...), ...}``.
 """
 from __future__ import annotations
@@ -26,11 +29,16 @@ class ElasticPlate:
     def __init__(self, scene, priors: dict):
         self.scene, self.priors = scene, priors
 
+    def diagnostics(self, draws: dict) -> dict:
+        """Per-draw figures of the scene (a reduced scene's error estimate), for ``fit``."""
+        report = getattr(self.scene, "diagnostics", None)
+        return report(draws) if report else {}
+
     def __call__(self, y=None, mask=None):
         scene, chosen = self.scene, self.priors
         params = {k: pyro.sample(k, chosen[k]) for k in scene.param_names}
         sigma = pyro.sample("sigma", chosen["sigma"])
-        mean = scene.observe(scene.solve(params))
+        mean = scene.predict(params)
         likelihood = dist.Normal(mean, sigma)
         if mask is not None:
             likelihood = likelihood.mask(mask)

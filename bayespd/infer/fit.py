@@ -93,7 +93,9 @@ def fit(model, data: dict, method="nuts", **settings):
     mask and scale applied, masked entries 0: ``az.loo`` works), ``posterior_predictive`` and
     ``pyro.deterministic`` sites (added to ``posterior``). ``observed_data``; ``constant_data``:
     the other data tensors, the scene's particle positions and observation points, and
-    ``constant_data``; given a scene, observations get dims ``(point, component)``. Root
+    ``constant_data``; given a scene, observations get dims ``(point, component)``. A model
+    with a ``diagnostics(draws)`` method (draws: arrays (chain, draw, ...)) adds the arrays it
+    returns to ``sample_stats`` (a reduced scene's error estimate at every draw). Root
     attributes: ``method``, ``wall_time_s`` (sampling / optimisation only),
     ``predictive_wall_time_s``, ``num_grad_evals``, ``settings`` (JSON), ``map_modes`` and
     ``mode_weights`` (when searched), ``created_at``, library versions.
@@ -121,6 +123,7 @@ def fit(model, data: dict, method="nuts", **settings):
     pyro.set_rng_seed(s.seed)
     posterior = {k: np.asarray(v) for k, v in posterior.items()}
     loglik, predictive, deterministic = replay(model, data, posterior, s.observed, s.progress)
+    stats = {**stats, **getattr(model, "diagnostics", lambda draws: {})(posterior)}
     dims, coords, const = _scene_layout(s.scene, data, s.observed, s.dims, s.coords, s.constant_data)
     groups = {
         "posterior": {**posterior, **deterministic},

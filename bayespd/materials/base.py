@@ -6,10 +6,12 @@ and the horizon ``"delta"`` -- all ordinary parameters, scalars or per-particle 
 differentiable (principle 3-4 of DESIGN.md). Its linearised stiffness is a list of Gram terms
 (operator A_t, data, weights k_t): K = sum_t A_t^T diag(k_t) A_t on the fixed ``pattern``.
 
-A law subclasses ``Material`` and writes four methods:
+A law subclasses ``Material`` and writes five methods:
 
 * ``stiffness_terms(moduli, params, factor, intact)``: the Gram terms of K at the per-bond
   intact fractions mu (``intact``; None: all intact), bond terms times the surface ``factor``;
+* ``term_coefficients(moduli)``: the scalar factors Theta_t of its terms for homogeneous
+  moduli (K = sum_t Theta_t A_t(delta), the affine structure a reduced model keeps);
 * ``energy_parts(moduli, params, u, factor)``: (W_fixed, W_bond) per particle for a
   displacement u, the split the surface correction needs (``bayespd.surface``);
 * ``bulk_energy_parts(moduli, params, axis)``: the same two parts at a complete lattice
@@ -170,6 +172,12 @@ class Material(ABC):
     def stiffness_terms(self, moduli: dict, params: dict, factor=1.0, intact=None) -> list:
         """Gram terms [(A_t, data, k_t)] at intact fractions ``intact`` (None: all intact),
         the bond terms times the surface ``factor``."""
+
+    @abstractmethod
+    def term_coefficients(self, moduli: dict) -> list:
+        """Theta_t per stiffness term for homogeneous (scalar) moduli: term t's weights are
+        Theta_t times a function of delta (and the influence parameters) alone, so that
+        K = sum_t Theta_t(moduli) A_t(delta), the affine structure ``bayespd.reduced`` keeps."""
 
     @abstractmethod
     def energy_parts(self, moduli: dict, params: dict, u: torch.Tensor, factor=1.0):

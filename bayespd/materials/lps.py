@@ -96,6 +96,11 @@ class LPS(Material):
         g_self = -torch.zeros(self.particles.n, d, dtype=g.dtype).index_add(0, self._owner, g)
         return torch.cat([g, g_self])
 
+    def term_coefficients(self, moduli):
+        """(G, kappa - c_d G / d^2): the factors of the bond and the dilatation term."""
+        K, G = moduli["K"], moduli["G"]
+        return [G, self.kappa(K, G) - self.c_d * G / self.dim**2]
+
     def energy_parts(self, moduli, params, u, factor=1.0):
         """W_i (Delorme 2018 eq 40) rewritten as in the module docstring, split into the
         dilatation part and the bond part (whose bonds carry the correction ``factor``)."""

@@ -52,6 +52,10 @@ class BondBased(Material):
         w = self.bond_weight(params)
         return c_b * w * self.volume[self.i] * self.volume[self.j] / self.length
 
+    def term_coefficients(self, moduli):
+        """(K,): the micromodulus, and with it every bond stiffness, is linear in K."""
+        return [moduli["K"]]
+
     def energy_parts(self, moduli, params, u, factor=1.0):
         """(0, W_i) with W_i = 1/4 sum_j c omega beta s^2 |xi| V_j: half of each bond's
         energy to each end; every bond carries the correction ``factor``."""

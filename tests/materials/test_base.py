@@ -163,6 +163,9 @@ def test_a_law_missing_an_abstract_method_cannot_be_instantiated(lattice):
         def stiffness_terms(self, moduli, params, factor=1.0, intact=None):
             return []
 
+        def term_coefficients(self, moduli):
+            return []
+
         def energy_parts(self, moduli, params, u, factor=1.0):
             return 0.0, 0.0
 

@@ -166,3 +166,20 @@ def test_bond_based_micromodulus_closed_forms(law, coefs):
         mat = law(p, bp.find_bonds(p, d), plane=plane)
         c = mat.micromodulus(K, {"delta": d}) * p.thickness
         assert abs(float(c / (a * K / (math.pi * d**power))) - 1) < 1e-14
+
+
+@pytest.mark.parametrize("plane", ["stress", "strain"])
+@pytest.mark.parametrize("law,bulk,tol", LAWS)
+def test_terms_are_affine_in_their_coefficients(lattice, law, bulk, tol, plane):
+    """K(moduli, delta) = sum_t Theta_t(moduli) A_t(delta): each term's weights at other
+    homogeneous moduli are those at the reference times Theta_t / Theta_t(reference)."""
+    p, bonds = lattice
+    mat = law(p, bonds, plane=plane)
+    names = mat.moduli_names
+    ref = {"K": K0, "G": G0}
+    other = {"K": 1.7 * K0, "G": 0.6 * G0}
+    at = lambda moduli: {**{k: torch.tensor(moduli[k]) for k in names}, "delta": 2.4}  # noqa: E731
+    scale = [float(a / b) for a, b in zip(mat.term_coefficients(at(other)), mat.term_coefficients(at(ref)))]
+    assert len(scale) == len(mat.terms(at(ref)))
+    for s, (_, _, w_ref), (_, _, w) in zip(scale, mat.terms(at(ref)), mat.terms(at(other))):
+        torch.testing.assert_close(w, s * w_ref, rtol=1e-13, atol=0)

@@ -1,0 +1,222 @@
+"""A reduced-order stand-in for a Scene's static solve (Cui, Marzouk & Willcox 2015): the
+full operator projected on a POD basis V of full-model snapshots over the prior, kept affine
+in the moduli, K_r(theta) = sum_t Theta_t(moduli) V^T A_t(delta) V, with each V^T A_t V (and
+each projected load) a cubic spline in delta. Each evaluation costs an r x r solve, whatever
+the particle count; it is differentiable (twice) in the moduli, delta and the load factor.
+
+Why splines in delta and not an empirical interpolation: A_t depends on delta through the bond
+weights omega * beta and the weighted volumes m, a smooth (C1 with ``rule="smooth"``) function of
+one scalar; a cubic spline of the r x r blocks, refined until the reduced solution at the
+interval midpoints agrees with the exactly projected one to a quarter of the tolerance, costs
+one assembly per node once and nothing per particle online.
+
+The basis is POD (``basis.pod``); its rank is the smallest whose largest observation error on
+held-out draws (full solves not used for the basis) is within ``tolerance`` / 2, else the build
+stops with an error. ``error_estimate`` bounds nothing but estimates the observation error at a
+draw from the residual without a factorisation (``estimator``).
+"""
+from __future__ import annotations
+
+import time
+import warnings
+
+import numpy as np
+import torch
+
+from bayespd.reduced.affine import Terms, check_reducible, coefficients
+from bayespd.reduced.basis import pod
+from bayespd.reduced.estimator import ErrorEstimator
+from bayespd.reduced.piecewise import Piecewise, chebyshev_points, check_points
+
+
+def breakpoints(bonds, low: float, high: float) -> np.ndarray:
+    """low, the horizons in (low, high) where a bond length's partial volume switches on or
+    saturates (delta = r -/+ h/2), and high; evenly spaced eighths when the lengths are too
+    many to list (irregular particles)."""
+    r = np.unique(np.round(bonds.length / bonds.h, 9)) * bonds.h
+    kinks = np.concatenate([r - bonds.h / 2, r + bonds.h / 2])
+    kinks = np.unique(np.round(kinks[(kinks > low) & (kinks < high)], 12))
+    if len(kinks) > 64:
+        kinks = np.linspace(low, high, 9)[1:-1]
+    return np.concatenate([[low], kinks, [high]])
+
+
+class ReducedScene:
+    """A Scene's ``predict``/``solve`` from a reduced basis (module docstring).
+
+    ``scene``: the full scene (direct solver, with an observation); ``draws``: params dicts over
+    the prior (K, G, delta, ...), the last ``validation`` of them held out to choose the rank;
+    ``tolerance``: the largest observation error allowed, in the data's units (e.g. 1 % of the
+    noise sd); ``delta_range``: the horizons the splines cover (default [h, delta_max], the
+    support of the default prior). ``report`` holds the build's figures.
+    """
+
+    def __init__(self, scene, draws: list[dict], tolerance: float, *, validation: int | None = None,
+                 delta_range: tuple[float, float] | None = None, max_pieces: int = 256):
+        start = time.perf_counter()
+        check_reducible(scene)
+        if scene.observation is None:
+            raise ValueError("the reduced model predicts observations: give the scene an observation")
+        if not tolerance > 0:
+            raise ValueError(f"tolerance must be > 0 (an observation error in the data's units), got {tolerance}")
+        self.scene, self.tolerance = scene, float(tolerance)
+        self.material, self.particles, self.observation = scene.material, scene.particles, scene.observation
+        self.param_names = scene.param_names
+        low, high = delta_range or (scene.particles.h, scene.material.bonds.delta_max)
+        draws = [{k: float(d[k]) for k in self.param_names} for d in draws]
+        validation = max(4, len(draws) // 5) if validation is None else validation
+        if len(draws) < validation + 4:
+            raise ValueError(f"{len(draws)} draws: the basis needs >= 4 and {validation} are held out "
+                             "to validate it; give more draws")
+        outside = [d["delta"] for d in draws if not low <= d["delta"] <= high]
+        if outside:
+            raise ValueError(f"draws with delta {outside[:3]} lie outside delta_range [{low}, {high}]")
+        moduli = self.material.moduli_names
+        self.reference = {k: float(np.median([d[k] for d in draws])) for k in moduli}
+        self.theta_ref = coefficients(self.material, self.reference)
+        if bool(torch.any(self.theta_ref == 0)):
+            raise ValueError(f"a term coefficient is zero at the reference moduli {self.reference} (the "
+                             "draws' median), and the others are scaled by it: give draws with another median")
+        shapes = np.array([self._shape(d) for d in draws])
+        self.shape_range = (shapes.min(axis=0), shapes.max(axis=0))
+
+        c = scene.constraints
+        t0 = time.perf_counter()
+        full = np.stack([self._full_solve(d) for d in draws], axis=1)
+        snapshot_s = time.perf_counter() - t0
+        train, held = full[:, :-validation], full[:, -validation:]
+        V, singular = pod(train, 0.0)  # every direction; the rank is chosen below
+        H = scene.observation_matrix()
+        n_points, dim = self.observation.n, self.particles.dim
+        self._out_shape = (n_points, dim)
+        HV = torch.sparse.mm(H, torch.as_tensor(V)).numpy()
+        obs0 = scene.observe(c.expand(torch.zeros(len(c.free_dofs), dtype=torch.float64))).reshape(-1)
+        f = (V.T @ c.free(scene.force).numpy())
+
+        t0 = time.perf_counter()
+        blocks, loads = self._delta_pieces(V, HV, low, high, max_pieces)
+        spline_s = time.perf_counter() - t0
+
+        self._full = (V, torch.as_tensor(HV), obs0, torch.as_tensor(f), blocks, loads)
+        H_held = torch.sparse.mm(H, torch.as_tensor(held)).numpy().T + obs0.numpy()
+        errors = []
+        for r in range(1, V.shape[1] + 1):
+            self.rank = r
+            with torch.no_grad():
+                pred = np.stack([self.predict(d).reshape(-1).numpy() for d in draws[-validation:]])
+            errors.append(float(np.abs(pred - H_held).max()))
+            if errors[-1] <= tolerance / 2:  # half: the held-out draws are few
+                break
+        else:
+            raise ValueError(f"the basis from {train.shape[1]} snapshots reaches a held-out observation "
+                             f"error of {min(errors):.3g} at best, above half the tolerance, {tolerance / 2:.3g}: "
+                             "give more draws (snapshots), or a larger tolerance")
+        self.estimator = ErrorEstimator(self, {**self.reference, "delta": float(np.median([d["delta"] for d in draws]))})
+        estimates = [self.estimator(d) for d in draws[-validation:]]
+        truth = np.abs(self._predict_numpy(draws[-validation:]) - H_held).max(axis=1)
+        self.report = {
+            "rank": self.rank, "snapshots": train.shape[1], "validation_draws": validation,
+            "validation_error_max": errors[-1], "validation_error_by_rank": errors,
+            "singular_values": (singular / singular[0]).tolist(), "delta_pieces": len(blocks.breaks) - 1,
+            "delta_range": [low, high], "reference": self.reference,
+            "estimator_effectivity": (np.asarray(estimates) / np.maximum(truth, 1e-300)).tolist(),
+            "snapshot_s": snapshot_s, "spline_s": spline_s, "build_s": time.perf_counter() - start}
+
+    def _shape(self, params: dict) -> np.ndarray:
+        """The ratios Theta_t / Theta_0 relative to the reference: what the solution's shape
+        depends on besides delta (its size scales with 1 / Theta_0)."""
+        theta = (coefficients(self.material, params) / self.theta_ref).numpy()
+        return theta[1:] / theta[0]
+
+    def _full_solve(self, params: dict) -> np.ndarray:
+        with torch.no_grad():
+            return self.scene.factor(params).solve(self.scene.free_load(params).numpy())
+
+    def _projected(self, V, delta: float):
+        """(V^T A_t V) (T, R, R) and V^T (-A_t u_c) (T, R) at ``delta``, reference moduli."""
+        c = self.scene.constraints
+        V_all = np.zeros((c.prescribed.numel(), V.shape[1]))
+        V_all[c.free_dofs] = V
+        return Terms(self.material, {**self.reference, "delta": delta}).project(V_all, c.prescribed.reshape(-1).numpy())
+
+    def _delta_pieces(self, V, HV, low, high, max_pieces):
+        """Polynomials in delta on the pieces between the partial volumes' breakpoints, each
+        halved until, at its check points, the reduced solution at the reference moduli from
+        the interpolated operators matches the exactly projected one's observations to
+        tolerance / 4. Returns (blocks, loads) as ``Piecewise``."""
+        f = V.T @ self.scene.constraints.free(self.scene.force).numpy()
+        theta = np.ones(len(self.theta_ref))  # Theta_t / Theta_t(reference) at the reference
+
+        def observed(S, p):
+            return HV @ np.linalg.solve(np.tensordot(theta, S, 1), f + theta @ p)
+
+        b = breakpoints(self.material.bonds, low, high)
+        todo, done, n = list(zip(b[:-1], b[1:])), [], 6
+        while todo:
+            a, b = todo.pop()
+            exact = [self._projected(V, x) for x in a + (b - a) * chebyshev_points(n)]
+            piece = [Piecewise([a, b], [np.stack([e[k] for e in exact])]) for k in (0, 1)]
+            worst = max(float(np.abs(observed(*self._projected(V, x))
+                                         - observed(piece[0](x).numpy(), piece[1](x).numpy())).max())
+                        for x in a + (b - a) * check_points(n))
+            if worst <= self.tolerance / 4:
+                done.append((a, b, exact))
+            elif len(todo) + len(done) + 2 > max_pieces:
+                raise ValueError(f"the operators' polynomials in delta reach an observation error of {worst:.3g} "
+                                 f"on [{a:.4g}, {b:.4g}] with {max_pieces} pieces, above tolerance/4 = "
+                                 f"{self.tolerance / 4:.3g}: raise max_pieces or the tolerance")
+            else:
+                todo += [(a, 0.5 * (a + b)), (0.5 * (a + b), b)]
+        done.sort(key=lambda piece: piece[0])
+        breaks = [piece[0] for piece in done] + [done[-1][1]]
+        return tuple(Piecewise(breaks, [np.stack([e[k] for e in piece[2]]) for piece in done]) for k in (0, 1))
+
+    @property
+    def V(self) -> np.ndarray:
+        """The basis (n_free, rank): the first ``rank`` POD vectors (POD bases are nested)."""
+        return self._full[0][:, :self.rank]
+
+    def coefficients_of(self, params: dict) -> torch.Tensor:
+        """The reduced solution a (rank,) at ``params`` (differentiable)."""
+        r = self.rank
+        _, _, _, f, blocks, loads = self._full
+        q = {k: torch.as_tensor(params[k], dtype=torch.float64) for k in self.param_names}
+        theta = coefficients(self.material, q) / self.theta_ref
+        K = torch.tensordot(theta, blocks(q["delta"])[:, :r, :r], 1)
+        b = f[:r] * torch.as_tensor(params.get("load", 1.0), dtype=torch.float64) \
+            + torch.tensordot(theta, loads(q["delta"])[:, :r], 1)
+        return torch.linalg.solve(K, b)
+
+    def predict(self, params: dict) -> torch.Tensor:
+        """The observations (points, dim) at ``params``, differentiable (twice)."""
+        _, HV, obs0, *_ = self._full
+        return (HV[:, :self.rank] @ self.coefficients_of(params) + obs0).reshape(self._out_shape)
+
+    def solve(self, params: dict) -> torch.Tensor:
+        """The displacement field (N, dim) V a at ``params`` (differentiable)."""
+        return self.scene.constraints.expand(torch.as_tensor(self.V) @ self.coefficients_of(params))
+
+    def observe(self, u: torch.Tensor) -> torch.Tensor:
+        return self.scene.observe(u)
+
+    def _predict_numpy(self, draws) -> np.ndarray:
+        with torch.no_grad():
+            return np.stack([self.predict(d).reshape(-1).numpy() for d in draws])
+
+    def error_estimate(self, params: dict) -> float:
+        """The estimated largest observation error at ``params`` (``estimator``)."""
+        return self.estimator(params)
+
+    def diagnostics(self, draws: dict) -> dict:
+        """The error estimate at every draw (arrays (chain, draw)); a warning when any exceeds
+        the tolerance, naming how many."""
+        shape = np.shape(next(iter(draws.values())))[:2]
+        out = np.array([self.estimator({k: draws[k][c, d] for k in self.param_names})
+                        for c, d in np.ndindex(*shape)]).reshape(shape)
+        over = int((out > self.tolerance).sum())
+        if over:
+            warnings.warn(f"the reduced model's estimated observation error exceeds its tolerance "
+                          f"{self.tolerance:.3g} at {over} of {out.size} draws (largest {out.max():.3g}): "
+                          "rebuild it with draws that cover the posterior, or correct the fit with the "
+                          "full model (importance_correction)", stacklevel=2)
+        return {"reduced_error_estimate": out}
