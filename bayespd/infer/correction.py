@@ -12,6 +12,7 @@ self-normalised estimates converge at a usable rate; for k > 0.7 the weights are
 heavy-tailed (the approximation misses mass of the exact posterior) and nothing is reported.
 """
 
+import itertools
 import math
 import time
 import warnings
@@ -33,6 +34,9 @@ K_GOOD = 0.5
 # arviz.psislw fits the largest ceil(S / 5) ratios (for S <= 225) and needs 5 of them
 MIN_DRAWS = 21
 STATISTICS = ("mean", "sd", "mcse_mean", "q05", "q95")
+# log ratios that spread less move a weighted mean by less than this many of the draws' (mean
+# absolute value): the models agree, and the ties would defeat the Pareto fit
+AGREE = 1e-8
 
 
 class UnreliableCorrectionError(RuntimeError):
@@ -68,6 +72,8 @@ def importance_correction(tree: xr.DataTree, approximate, exact, data: dict, num
     ``reliable`` (1 if k <= 0.7, else 0: NetCDF has no booleans), ``wall_time_s`` (the whole
     correction), ``exact_wall_time_s`` and ``approximate_wall_time_s`` (the model evaluations).
 
+    Log ratios that agree to ``AGREE`` (models that differ by a constant) give uniform weights
+    and k = -inf (the weights are as bounded as can be; a Pareto fit of ties is undefined).
     With k > 0.7 the ``corrected_*`` variables are NaN, ``reliable`` is 0 and a ``UserWarning``
     says why; with 0.5 < k <= 0.7 (or k above the sample-size bound 1 - 1/log10 S) a softer one.
     :func:`corrected_summary` reads the result back.
@@ -111,8 +117,11 @@ def importance_correction(tree: xr.DataTree, approximate, exact, data: dict, num
             "at its own draws (is the tree a fit of `approximate` to these data?), the exact one finite or "
             "-inf, and finite somewhere")
     log_raw = log_ratio - logsumexp(log_ratio)
-    log_psis, k = az.psislw(log_ratio, reff=1.0)
-    k = float(k)
+    if np.ptp(log_ratio) <= AGREE:  # the models differ by a constant: uniform weights, nothing to fit
+        log_psis, k = log_raw, -math.inf
+    else:
+        log_psis, k = az.psislw(log_ratio, reff=1.0)
+        k = float(k)
     weights = np.exp(log_psis)
     ess = float(1.0 / np.sum(weights**2))
     reliable = bool(k <= K_MAX)
@@ -139,7 +148,8 @@ def importance_correction(tree: xr.DataTree, approximate, exact, data: dict, num
 
 def corrected_summary(tree: xr.DataTree) -> pd.DataFrame:
     """The importance-corrected posterior summary of :func:`importance_correction`: one row per
-    latent scalar (``b[0]``, ``b[1]``, ... for a vector site), the columns of ``STATISTICS``;
+    latent scalar, labelled as ``az.summary`` labels them (``b[0]``, ``b[1]``, or the dim's
+    coordinates ``b[u]``, ``b[v]``), the columns of ``STATISTICS``;
     ``df.attrs`` holds ``pareto_k``, ``ess`` and ``num_draws``. Raises
     ``UnreliableCorrectionError`` when the correction had Pareto k > 0.7."""
     if GROUP not in tree.children:
@@ -152,11 +162,11 @@ def corrected_summary(tree: xr.DataTree) -> pd.DataFrame:
             "its summary is not reported. Improve the approximation, draw more, or fit the exact model")
     rows = {}
     for name in sorted(v for v in group.data_vars if v.startswith("corrected_")):
-        stats = group[name].transpose("statistic", ...).values
-        site = name.removeprefix("corrected_")
-        flat = stats.reshape(len(STATISTICS), -1)
-        for i, idx in enumerate(np.ndindex(stats.shape[1:])):
-            rows[site + (f"[{','.join(map(str, idx))}]" if idx else "")] = flat[:, i]
+        stats = group[name].transpose("statistic", ...)
+        labels = [group[d].values if d in group.coords else range(stats.sizes[d]) for d in stats.dims[1:]]
+        flat = stats.values.reshape(len(STATISTICS), -1)
+        for i, idx in enumerate(itertools.product(*labels)):
+            rows[name.removeprefix("corrected_") + (f"[{', '.join(map(str, idx))}]" if idx else "")] = flat[:, i]
     df = pd.DataFrame.from_dict(rows, orient="index", columns=list(group["statistic"].values))
     df.attrs = {k: attrs[k] for k in ("pareto_k", "ess", "num_draws")}
     return df

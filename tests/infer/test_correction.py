@@ -15,7 +15,7 @@ from scipy import stats
 from scipy.special import logsumexp
 
 from bayespd.infer import (UnreliableCorrectionError, corrected_summary, fit, importance_correction, load,
-                           save)
+                           save, summary)
 from bayespd.infer.correction import _warn
 from bayespd.infer.datatree import build_tree
 from tests.infer.test_fit import float64_single_thread  # noqa: F401 (autouse)
@@ -98,6 +98,31 @@ def test_reweighted_draws_recover_the_exact_posterior(corrected):
     df = corrected_summary(corrected)
     assert list(df.index) == ["theta"] and list(df.columns) == ["mean", "sd", "mcse_mean", "q05", "q95"]
     assert df.loc["theta", "mean"] == est["mean"] and df.attrs["ess"] == ess
+
+
+def test_models_that_differ_by_a_constant_give_uniform_weights_on_a_vector_site():
+    """log p_exact - log p_approx = 3 at every draw (a pyro.factor): w = 1/S exactly, k = -inf,
+    ESS = S, and the corrected summary is the thinned draws' own, per component."""
+    def vector(offset):
+        def model(y=None):
+            b = pyro.sample("b", dist.Normal(torch.zeros(2), 1.0).to_event(1))
+            pyro.factor("offset", torch.tensor(offset))
+            with pyro.plate("obs", N):
+                pyro.sample("y", dist.Normal(b.sum(), 1.0), obs=y)
+        return model
+
+    b = np.random.default_rng(2).standard_normal((2, 30, 2))
+    tree = build_tree({"posterior": {"b": b}}, dims={"b": ["component"]}, coords={"component": ["u", "v"]})
+    out = importance_correction(tree, vector(0.0), vector(3.0), {"y": Y}, num_draws=60)
+    group = out["importance"]
+    assert group.attrs["pareto_k"] == -math.inf and group.attrs["reliable"] == 1
+    assert group.attrs["ess"] == pytest.approx(60, rel=1e-12)
+    np.testing.assert_allclose(group["log_joint_exact"] - group["log_joint_approximate"], 3.0, rtol=1e-12)
+    assert group["corrected_b"].dims == ("statistic", "component")
+    df = corrected_summary(out)
+    assert list(df.index) == summary(out).index.tolist() == ["b[u]", "b[v]"]  # az.summary's labels
+    np.testing.assert_allclose(df["mean"], b.reshape(-1, 2).mean(axis=0), rtol=1e-12)
+    np.testing.assert_allclose(df["sd"], b.reshape(-1, 2).std(axis=0), rtol=1e-12)
 
 
 @pytest.mark.filterwarnings("ignore:importance correction")  # 21 draws: k above 1 - 1/log10(21)
