@@ -34,8 +34,8 @@ K_GOOD = 0.5
 # arviz.psislw fits the largest ceil(S / 5) ratios (for S <= 225) and needs 5 of them
 MIN_DRAWS = 21
 STATISTICS = ("mean", "sd", "mcse_mean", "q05", "q95")
-# log ratios that spread less move a weighted mean by less than this many of the draws' (mean
-# absolute value): the models agree, and the ties would defeat the Pareto fit
+# log ratios spread by at most this are taken as equal: the weights are uniform to 1e-8 (the
+# models differ by a constant) and their ties leave no tail for a Pareto fit
 AGREE = 1e-8
 
 
@@ -67,7 +67,7 @@ def importance_correction(tree: xr.DataTree, approximate, exact, data: dict, num
     ``log_weight_raw`` and ``log_weight_psis``, both normalised (logsumexp 0); and per site
     ``corrected_<site>`` over a dim ``statistic`` = (mean, sd, mcse_mean, q05, q95): the weighted
     mean, sd, Monte-Carlo standard error of the mean (sqrt(sum w^2 (theta - mean)^2), the
-    delta-method error of a self-normalised estimate) and 5 / 95 % weighted quantiles.
+    delta-method error of a self-normalised estimate from independent draws) and 5 / 95 % weighted quantiles.
     Attributes: ``pareto_k``, ``ess`` (1 / sum w^2 of the smoothed weights), ``num_draws``,
     ``reliable`` (1 if k <= 0.7, else 0: NetCDF has no booleans), ``wall_time_s`` (the whole
     correction), ``exact_wall_time_s`` and ``approximate_wall_time_s`` (the model evaluations).
@@ -161,7 +161,7 @@ def corrected_summary(tree: xr.DataTree) -> pd.DataFrame:
             f"the importance correction is unreliable (Pareto k = {attrs['pareto_k']:.2f} > {K_MAX}): "
             "its summary is not reported. Improve the approximation, draw more, or fit the exact model")
     rows = {}
-    for name in sorted(v for v in group.data_vars if v.startswith("corrected_")):
+    for name in sorted(v for v in group.data_vars if v.startswith("corrected_") and "statistic" in group[v].dims):
         stats = group[name].transpose("statistic", ...)
         labels = [group[d].values if d in group.coords else range(stats.sizes[d]) for d in stats.dims[1:]]
         flat = stats.values.reshape(len(STATISTICS), -1)
