@@ -79,12 +79,14 @@ def test_reweighted_draws_recover_the_exact_posterior(corrected):
     bounded (a wider proposal), k < 0.5. With ESS effective draws of a Gaussian the mean's
     standard error is sd / sqrt(ESS), the sd's relative one 1 / sqrt(2 ESS) and a 5 / 95 %
     quantile's sqrt(0.05 0.95) / phi(1.645) sd / sqrt(ESS) = 2.12 sd / sqrt(ESS): each within
-    4 of them, which the uncorrected draws miss."""
+    4 of them, which the uncorrected draws miss. ESS / S tends to 1 / E_q[(p/q)^2] =
+    sqrt(2 r^2 - 1) / r^2 exp(-d^2 / (2 r^2 - 1)) (r the sd ratio, d the offset in exact sds)."""
     group = corrected["importance"]
     k, ess = group.attrs["pareto_k"], group.attrs["ess"]
     assert k < 0.5 and group.attrs["reliable"] == 1
-    assert 500 < ess <= 1000
     mean, sd = analytic(**EXACT)
+    r, d = analytic(**APPROX)[1] / sd, (analytic(**APPROX)[0] - mean) / sd
+    assert ess == pytest.approx(1000 * math.sqrt(2 * r**2 - 1) / r**2 * math.exp(-d**2 / (2 * r**2 - 1)), rel=0.05)
     tol = {"mean": 4 * sd / math.sqrt(ess), "sd": 4 * sd / math.sqrt(2 * ess), "q": 4 * 2.12 * sd / math.sqrt(ess)}
     est = group["corrected_theta"].to_series()
     assert abs(est["mean"] - mean) < tol["mean"]
