@@ -22,6 +22,7 @@ from dataclasses import replace
 from datetime import datetime, timezone
 
 import numpy as np
+import xarray as xr
 import pyro
 import torch
 from pyro.infer.autoguide.initialization import init_to_median, init_to_value
@@ -123,7 +124,10 @@ def fit(model, data: dict, method="nuts", **settings):
     pyro.set_rng_seed(s.seed)
     posterior = {k: np.asarray(v) for k, v in posterior.items()}
     loglik, predictive, deterministic = replay(model, data, posterior, s.observed, s.progress)
-    stats = {**stats, **getattr(model, "diagnostics", lambda draws: {})(posterior)}
+    extra = getattr(model, "diagnostics", lambda draws: {})(posterior)
+    if extra:  # stats: arrays (chain, draw), or a Dataset (Laplace)
+        stats = (stats.assign({k: (("chain", "draw"), v) for k, v in extra.items()})
+                 if isinstance(stats, xr.Dataset) else {**stats, **extra})
     dims, coords, const = _scene_layout(s.scene, data, s.observed, s.dims, s.coords, s.constant_data)
     groups = {
         "posterior": {**posterior, **deterministic},

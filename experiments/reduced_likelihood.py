@@ -1,0 +1,253 @@
+"""Reduced-order likelihood: error against run time of every method on the same data.
+
+The plate with a hole of demo.py (K, G, delta, sigma), ``rule="smooth"``, at model spacing h
+(``demo``: h = 2 mm, ~190 particles; ``5k``: h = 0.4 mm, ~4.7k; ``40k``: h = 0.14 mm, ~38k);
+data from a finer plate (h_data) at the truth (delta = 2.5 h) plus 1 % noise, at the model's
+particles right of the clamp. Methods, each timed:
+
+* ``reduced NUTS``: ``ReducedScene`` from prior draws (its build timed and included), then NUTS
+  (MAP start, Laplace mass matrix) on ``elastic_plate(reduced, ...)``; its error estimate at
+  every draw is in ``sample_stats``;
+* ``+ correction``: PSIS importance reweighting by the full model at ``--correction`` thinned
+  draws (``importance_correction``);
+* ``Laplace`` of the full model; ``SVI`` (full-rank Gaussian) of the reduced model;
+* ``full NUTS`` where affordable (the demo scene).
+
+The reference posterior is full-model NUTS on the demo scene, and elsewhere the importance
+reweighting of the reduced posterior by the full model at ``--reference`` draws (k and ESS
+reported): errors are |mean - reference mean| / reference sd and sd / reference sd. The reduced
+model's observation error is reported as its estimate at every draw and its true value at the
+reference draws, against 1 % of the noise sd. Writes runs/reduced_likelihood/metrics.json and
+error_vs_time.png.
+
+    python experiments/reduced_likelihood.py [--quick] [--scenes demo 5k] [--draws 300 --warmup 200]
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import arviz as az
+import numpy as np
+import torch
+
+import common  # noqa: F401  (one torch thread; repository root on sys.path)
+import demo
+from common import run_dir, write_metrics
+
+from bayespd.infer import UnreliableCorrectionError, corrected_summary, fit, importance_correction, to_inference_data
+from bayespd.models.elastic_plate import elastic_plate
+from bayespd.models.priors import elastic_priors
+from bayespd.observe import locate
+from bayespd.reduced import ReducedScene
+
+NAMES = ("K", "G", "delta", "sigma")
+SCENES = {"demo": (2.0, 1.0), "5k": (0.4, 0.2), "40k": (0.14, 0.1)}  # (h, h_data) in mm
+ESS_TARGET = 400
+TIME_TARGET = {"demo": 120.0, "5k": 120.0, "40k": 600.0}
+
+
+def problem(h: float, h_data: float, seed: int):
+    """(model scene, points, data, sigma, truth): data from the plate at h_data, 1 % noise."""
+    truth = {"K": demo.K_TRUE, "G": demo.G_TRUE, "delta": 2.5 * h}
+    coarse = demo.plate(h, 3 * h).particles
+    fine_particles = demo.plate(h_data, truth["delta"]).particles
+    candidates = coarse.x[coarse.x[:, 0] > demo.CLAMP]
+    points = candidates[~locate(fine_particles, candidates)[2]]
+    fine = demo.plate(h_data, truth["delta"], points, "smooth")
+    with torch.no_grad():
+        clean = fine.predict(truth)
+    sigma = 0.01 * float(clean.abs().max())
+    y = clean + sigma * torch.randn(clean.shape, generator=torch.Generator().manual_seed(seed))
+    return demo.plate(h, 3 * h, points, "smooth"), y, sigma, {**truth, "sigma": sigma}
+
+
+def prior_draws(scene, noise_scale: float, n: int, seed: int) -> list[dict]:
+    priors = elastic_priors(scene, demo.NOMINAL, noise_scale)
+    torch.manual_seed(seed)
+    return [{k: float(priors[k].sample()) for k in ("K", "G", "delta")} for _ in range(n)]
+
+
+def moments(tree) -> dict:
+    post = tree["posterior"]
+    out = {}
+    for k in NAMES:
+        x = post[k].values.reshape(-1)
+        out[k] = {"mean": float(x.mean()), "sd": float(x.std()), "interval_90": np.quantile(x, [0.05, 0.95]).tolist()}
+    return out
+
+
+def corrected_moments(tree) -> dict | None:
+    """The reweighted moments, None when the correction is unreliable (k > 0.7)."""
+    try:
+        table = corrected_summary(tree)
+    except UnreliableCorrectionError:
+        return None
+    return {k: {"mean": float(table.loc[k, "mean"]), "sd": float(table.loc[k, "sd"]),
+                "interval_90": [float(table.loc[k, "q05"]), float(table.loc[k, "q95"])]} for k in NAMES}
+
+
+def errors(estimate: dict, reference: dict) -> dict:
+    return {k: {"mean_error_in_sd": abs(estimate[k]["mean"] - reference[k]["mean"]) / reference[k]["sd"],
+                "sd_ratio": estimate[k]["sd"] / reference[k]["sd"]} for k in NAMES}
+
+
+def ess(tree) -> dict:
+    e = az.ess(to_inference_data(tree), var_names=list(NAMES), method="bulk")
+    return {k: float(e[k]) for k in NAMES}
+
+
+def true_errors(reduced, scene, tree, n: int) -> list[float]:
+    """|reduced - full| observations at n evenly spaced posterior draws."""
+    post = tree["posterior"]
+    flat = {k: post[k].values.reshape(-1) for k in ("K", "G", "delta")}
+    picks = np.linspace(0, len(flat["K"]) - 1, n).round().astype(int)
+    out = []
+    with torch.no_grad():
+        for i in picks:
+            params = {k: float(flat[k][i]) for k in flat}
+            out.append(float((reduced.predict(params) - scene.predict(params)).abs().max()))
+    return out
+
+
+def run_scene(name: str, args) -> dict:
+    h, h_data = SCENES[name]
+    t0 = time.perf_counter()
+    scene, y, sigma, truth = problem(h, h_data, args.seed)
+    data_s = time.perf_counter() - t0
+    noise_scale = 0.05 * float(y.abs().max())
+    data = {"y": y}
+    full_model = elastic_plate(scene, demo.NOMINAL, noise_scale)
+    print(f"{name}: {scene.particles.n} particles, {len(y)} points, data in {data_s:.1f} s", flush=True)
+    nuts = dict(num_samples=args.draws, num_warmup=args.warmup, num_chains=2, init="map",
+                mass_matrix_from="laplace", adapt_mass=False, target_accept=0.9, seed=args.seed, progress=False)
+    out = {"particles": scene.particles.n, "points": len(y), "truth": truth, "methods": {}}
+
+    t0 = time.perf_counter()
+    reduced = ReducedScene(scene, prior_draws(scene, noise_scale, args.snapshots, args.seed), 0.01 * sigma)
+    build_s = time.perf_counter() - t0
+    out["reduced_model"] = {k: v for k, v in reduced.report.items() if k != "singular_values"}
+    print(f"  reduced model: rank {reduced.rank}, {reduced.report['delta_pieces']} pieces in delta, "
+          f"{build_s:.1f} s", flush=True)
+    reduced_model = elastic_plate(reduced, demo.NOMINAL, noise_scale)
+    t0 = time.perf_counter()
+    tree = fit(reduced_model, data, "nuts", **nuts)
+    nuts_s = time.perf_counter() - t0
+    e = ess(tree)
+    estimate = tree["sample_stats"]["reduced_error_estimate"].values
+    sampling = float(tree.attrs["wall_time_s"])
+    out["methods"]["reduced_nuts"] = {
+        "wall_time_s": build_s + nuts_s, "build_s": build_s, "sampling_s": sampling, "fit_call_s": nuts_s,
+        "ess_bulk": e, "ess_min": min(e.values()), "moments": moments(tree),
+        "divergences": int(tree["sample_stats"]["diverging"].sum()),
+        "time_to_ess_400_s": build_s + nuts_s * max(1.0, ESS_TARGET / min(e.values())),
+        "reduced_error_estimate_max": float(estimate.max()), "reduced_error_estimate_mean": float(estimate.mean())}
+    print(f"  reduced NUTS: build {build_s:.1f} s + fit {nuts_s:.1f} s (sampling {sampling:.1f} s), "
+          f"ESS { {k: round(v) for k, v in e.items()} }, error estimate max {estimate.max():.3g} "
+          f"(1 % of sigma: {0.01 * sigma:.3g})", flush=True)
+
+    t0 = time.perf_counter()
+    corrected = importance_correction(tree, reduced_model, full_model, data, num_draws=args.correction)
+    out["methods"]["reduced_nuts_corrected"] = {
+        "wall_time_s": build_s + nuts_s + time.perf_counter() - t0, "correction_s": time.perf_counter() - t0,
+        "pareto_k": float(corrected["importance"].attrs["pareto_k"]),
+        "ess": float(corrected["importance"].attrs["ess"]), "moments": corrected_moments(corrected)}
+    print(f"  correction: {args.correction} full solves in {out['methods']['reduced_nuts_corrected']['correction_s']:.1f} s, "
+          f"k = {out['methods']['reduced_nuts_corrected']['pareto_k']:.2f}", flush=True)
+
+    t0 = time.perf_counter()
+    laplace = fit(full_model, data, "laplace", num_samples=2000, seed=args.seed, progress=False)
+    out["methods"]["full_laplace"] = {"wall_time_s": time.perf_counter() - t0, "moments": moments(laplace)}
+    t0 = time.perf_counter()
+    svi = fit(reduced_model, data, "svi", svi_steps=args.svi_steps, num_samples=2000, seed=args.seed, progress=False)
+    out["methods"]["reduced_svi"] = {"wall_time_s": build_s + time.perf_counter() - t0, "moments": moments(svi)}
+
+    if name == "demo":
+        t0 = time.perf_counter()
+        full = fit(full_model, data, "nuts", **{**nuts, "num_samples": 2 * args.draws})
+        out["methods"]["full_nuts"] = {"wall_time_s": time.perf_counter() - t0, "ess_bulk": ess(full),
+                                       "moments": moments(full)}
+        reference, how = out["methods"]["full_nuts"]["moments"], "full-model NUTS"
+    else:
+        t0 = time.perf_counter()
+        ref_tree = importance_correction(tree, reduced_model, full_model, data, num_draws=args.reference)
+        reference = corrected_moments(ref_tree)
+        how = (f"PSIS reweighting of the reduced posterior by the full model at {args.reference} draws "
+               f"(k = {float(ref_tree['importance'].attrs['pareto_k']):.2f}, ESS "
+               f"{float(ref_tree['importance'].attrs['ess']):.0f}, {time.perf_counter() - t0:.0f} s)")
+    out["reference"] = {"how": how, "moments": reference}
+    if reference is None:
+        raise RuntimeError(f"the reference posterior is unreliable ({how}): raise --reference or --snapshots")
+    for method in out["methods"].values():
+        method["errors"] = errors(method["moments"], reference) if method["moments"] else None
+    true = true_errors(reduced, scene, tree, args.true_errors)
+    out["reduced_error_true_max"] = max(true)
+    out["noise_sd"] = sigma
+    return out
+
+
+def targets_of(name: str, result: dict) -> dict:
+    rn = result["methods"]["reduced_nuts"]
+    corr = result["methods"]["reduced_nuts_corrected"]
+    worst_mean = max(v["mean_error_in_sd"] for v in rn["errors"].values())
+    worst_sd = max(abs(v["sd_ratio"] - 1) for v in rn["errors"].values())
+    bound = 0.01 * result["noise_sd"]
+    t = {f"{name}_time_to_ess_400_s": (rn["time_to_ess_400_s"], TIME_TARGET[name], rn["time_to_ess_400_s"] <= TIME_TARGET[name]),
+         f"{name}_ess_min": (rn["ess_min"], ESS_TARGET, rn["ess_min"] >= ESS_TARGET),
+         f"{name}_mean_error_in_reference_sd_max": (worst_mean, 0.1, worst_mean <= 0.1),
+         f"{name}_sd_relative_error_max": (worst_sd, 0.1, worst_sd <= 0.1),
+         f"{name}_correction_s": (corr["correction_s"], 60.0, corr["correction_s"] <= 60.0),
+         f"{name}_correction_pareto_k": (corr["pareto_k"], 0.7, corr["pareto_k"] <= 0.7),
+         f"{name}_reduced_error_estimate_max": (rn["reduced_error_estimate_max"], bound, rn["reduced_error_estimate_max"] <= bound),
+         f"{name}_reduced_error_true_max": (result["reduced_error_true_max"], bound, result["reduced_error_true_max"] <= bound)}
+    return {k: {"value": v, "target": tgt, "passed": bool(ok)} for k, (v, tgt, ok) in t.items()}
+
+
+def figure(out, results):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(results), figsize=(5.5 * len(results), 4), squeeze=False, constrained_layout=True)
+    for ax, (name, result) in zip(axes[0], results.items()):
+        for method, r in result["methods"].items():
+            if r["errors"] is None:
+                continue
+            worst = max(v["mean_error_in_sd"] for v in r["errors"].values())
+            ax.scatter(r["wall_time_s"], max(worst, 1e-3), s=40)
+            ax.annotate(method, (r["wall_time_s"], max(worst, 1e-3)), fontsize=8)
+        ax.axhline(0.1, color="k", lw=0.5, ls="--")
+        ax.set(xscale="log", yscale="log", xlabel="wall time (s)", ylabel="max |mean - reference| / reference sd",
+               title=f"{name}: {result['particles']} particles")
+    fig.savefig(out / "error_vs_time.png", dpi=110)
+    plt.close(fig)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="the demo scene only, fewer draws")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--scenes", nargs="+", default=["demo", "5k"], choices=list(SCENES))
+    parser.add_argument("--draws", type=int, default=300)
+    parser.add_argument("--warmup", type=int, default=200)
+    parser.add_argument("--snapshots", type=int, default=30, help="full solves the basis is built from")
+    parser.add_argument("--correction", type=int, default=40, help="full solves of the correction")
+    parser.add_argument("--reference", type=int, default=200, help="full solves of the reference posterior")
+    parser.add_argument("--svi-steps", type=int, default=1000)
+    parser.add_argument("--true-errors", type=int, default=10)
+    args = parser.parse_args()
+    if args.quick:
+        args.scenes, args.draws, args.warmup, args.svi_steps = ["demo"], 100, 60, 300
+    start = time.perf_counter()
+    out = run_dir("reduced_likelihood")
+    results = {name: run_scene(name, args) for name in args.scenes}
+    targets = {}
+    for name, result in results.items():
+        targets.update(targets_of(name, result))
+    figure(out, results)
+    write_metrics("reduced_likelihood", {"wall_time_s": time.perf_counter() - start, "targets": targets,
+                                         "scenes": results, "settings": vars(args)})
+
+
+if __name__ == "__main__":
+    main()
