@@ -10,7 +10,7 @@ With ``discrepancy=`` (a ``bp.Discrepancy`` from ``bp.estimate_discrepancy``: th
 approximation error of this scene against a finer reference, Kaipio & Somersalo 2007) the
 observed entries are jointly Gaussian instead:
 
-    vec(y) ~ N(vec(H u + mu(params)), W W^T + diag(d + sigma^2))
+    vec(y) ~ N(vec(H u + s mu(params)), s^2 W W^T + diag(s^2 d + sigma^2))   (s = 1, or rms(H u) if relative)
 
 over the entries the mask keeps (the exact marginal of the full law); replicated data are drawn
 from the full law, shape (points, dim). The pointwise log-likelihood is then one value per draw.
@@ -76,8 +76,8 @@ class ElasticPlate:
         sigma = pyro.sample("sigma", chosen["sigma"])
         mean = scene.observe(scene.solve(params))
         if self.discrepancy is not None:
-            term = self.discrepancy
-            pyro.sample("y", FieldGaussian(term.loc(mean, params), term.factor, term.diag + sigma**2, mask), obs=y)
+            loc, factor, diag = self.discrepancy.gaussian(mean, params)
+            pyro.sample("y", FieldGaussian(loc, factor, diag + sigma**2, mask), obs=y)
             return
         likelihood = dist.Normal(mean, sigma)
         if mask is not None:

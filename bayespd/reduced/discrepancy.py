@@ -15,6 +15,9 @@ with phi = log of every parameter (``"linear"``: the part of eps that the parame
 fitted by least squares over the draws; Gamma_eps is then the residual covariance, smaller).
 Gamma_eps = W W^T + diag(d) is stored low rank: W holds the leading principal components of
 the residuals (rank chosen by explained variance), d the residual variance they leave (floored).
+With ``relative=True`` the moments are those of eps / s(theta), s = rms of M(theta) (the error
+relative to the displacement scale, which the moduli set), and the likelihood scales them back:
+N(M + s mu, s^2 Gamma_eps + sigma^2 I).
 
 **When it is needed.** Without it the model treats eps as zero; the posterior sd of a parameter
 that n observations inform falls like sigma / sqrt(n) while a systematic error of rms r biases it
@@ -43,7 +46,8 @@ class Discrepancy:
     mean (points, dim): mu; factor (n, k): W; diag (n,): d; rms: root mean square of eps over
     the draws and entries; explained: the fraction of the residual variance in W W^T;
     slope (n, p), names (p,), centre (p,): B, the parameters of phi = log(params) and phi_bar
-    (``None``/empty for a constant mean); points (points, dim') or None: where it was estimated.
+    (``None``/empty for a constant mean); points (points, dim') or None: where it was estimated;
+    relative: the moments are of eps / rms(prediction) (``gaussian`` scales them back).
     """
 
     mean: torch.Tensor
@@ -56,6 +60,7 @@ class Discrepancy:
     names: tuple = ()
     centre: torch.Tensor | None = None
     points: torch.Tensor | None = None
+    relative: bool = False
 
     def __post_init__(self):
         n = self.mean.numel()
@@ -83,11 +88,14 @@ class Discrepancy:
         phi = torch.stack([torch.log(torch.as_tensor(params[k], dtype=self.mean.dtype)) for k in self.names])
         return self.mean + (self.slope @ (phi - self.centre)).reshape(self.mean.shape)
 
-    def loc(self, prediction: torch.Tensor, params: dict | None = None) -> torch.Tensor:
-        """The mean of the data, ``prediction + mu(params)``; ``prediction`` is the cheap model's
-        (points, dim) observation."""
+    def gaussian(self, prediction: torch.Tensor, params: dict | None = None) -> tuple:
+        """(loc (points, dim), factor (n, k), diag (n,)) of the data less the noise:
+        ``prediction + s mu(params)`` and s W, s^2 d, with s = rms(prediction) if ``relative``
+        else 1; ``prediction`` is the cheap model's (points, dim) observation. The likelihood
+        is N(vec loc, factor factor^T + diag(diag + sigma^2))."""
         self.check_shape(tuple(prediction.shape), "the model's prediction")
-        return prediction + self.shift(params)
+        s = prediction.square().mean().sqrt() if self.relative else 1.0
+        return prediction + s * self.shift(params), s * self.factor, s**2 * self.diag
 
     def covariance(self) -> torch.Tensor:
         """Gamma_eps = W W^T + diag(d), dense (n, n): for checks and small problems."""
@@ -127,8 +135,9 @@ def prior_draws(priors: dict, num: int, seed: int, names: Sequence[str] | None =
         return [{k: priors[k].sample() for k in names} for _ in range(num)]
 
 
-def _errors(reference: Callable, model: Callable, draws: Sequence[dict]) -> tuple[torch.Tensor, tuple]:
-    """eps_i = reference(draw_i) - model(draw_i), stacked (draws, points * dim), checked."""
+def _errors(reference: Callable, model: Callable, draws: Sequence[dict], relative: bool) -> tuple[torch.Tensor, tuple]:
+    """eps_i = reference(draw_i) - model(draw_i) (divided by rms(model(draw_i)) if ``relative``),
+    stacked (draws, points * dim), checked."""
     rows, shape = [], None
     with torch.no_grad():
         for i, params in enumerate(draws):
@@ -145,7 +154,7 @@ def _errors(reference: Callable, model: Callable, draws: Sequence[dict]) -> tupl
                 raise ValueError(f"the {which} returned NaN/inf at draw {i} ({params}): "
                                  "draw parameters inside both scenes' range (delta between h and delta_max of each)")
             shape = r.shape
-            rows.append((r - m).reshape(-1))
+            rows.append((r - m).reshape(-1) / (m.square().mean().sqrt() if relative else 1.0))
     return torch.stack(rows), tuple(shape)
 
 
@@ -157,14 +166,15 @@ def _features(draws: Sequence[dict], names: tuple) -> torch.Tensor:
 
 
 def estimate_discrepancy(reference: Callable, model: Callable, draws: Sequence[dict], rank: int | None = None, *,
-                         explained: float = 0.99, dependence: str = "constant", floor: float = 1e-6,
-                         points=None) -> Discrepancy:
+                         explained: float = 0.99, dependence: str = "constant", relative: bool = False,
+                         floor: float = 1e-6, points=None) -> Discrepancy:
     """The approximation-error term from prior ``draws`` (Kaipio & Somersalo 2007).
 
     ``reference`` and ``model``: callables ``params -> (points, dim)`` observations, e.g.
     ``lambda p: fine.observe(fine.solve(p))``; each is called once per draw, in order.
     ``dependence``: ``"constant"`` (mean mu) or ``"linear"`` (mu + B (log params - mean), B by
-    least squares). ``rank``: the number of principal components in W; by default the fewest
+    least squares). ``relative``: model eps / rms(model(theta)) instead of eps (see the
+    module). ``rank``: the number of principal components in W; by default the fewest
     that hold ``explained`` of the residual variance. d: the residual variance they leave,
     floored at ``floor`` times its mean. ``points``: the observation points, kept so that a
     model refuses a scene observed elsewhere. Needs ``MIN_DOF`` residual degrees of freedom:
@@ -180,7 +190,7 @@ def estimate_discrepancy(reference: Callable, model: Callable, draws: Sequence[d
                          f"{columns + MIN_DOF} draws (a few dozen is typical)")
     if not 0 < explained <= 1:
         raise ValueError(f"explained must lie in (0, 1], got {explained}")
-    E, shape = _errors(reference, model, draws)
+    E, shape = _errors(reference, model, draws, relative)
     X = torch.ones(len(draws), 1, dtype=torch.float64)
     centre = None
     if names:
@@ -205,4 +215,4 @@ def estimate_discrepancy(reference: Callable, model: Callable, draws: Sequence[d
         mean=coef[0].reshape(shape), factor=W, diag=d, rms=float(E.square().mean().sqrt()),
         explained=float(variance[:rank].sum()) / total if total > 0 else 1.0, num_draws=len(draws),
         slope=coef[1:].T.contiguous() if names else None, names=names, centre=centre,
-        points=None if points is None else torch.as_tensor(points, dtype=torch.float64).clone())
+        points=None if points is None else torch.as_tensor(points, dtype=torch.float64).clone(), relative=relative)

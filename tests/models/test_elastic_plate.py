@@ -72,9 +72,10 @@ def test_a_prior_can_be_replaced(scene):
         elastic_plate(scene, NOMINAL, 0.01, priors={"G": dist.Normal(1400.0, 10.0)})
 
 
-def term_for(scene, seed=0, slope=True):
+def term_for(scene, seed=0, slope=True, relative=False):
     """A Discrepancy on the scene's observation points: random mean, rank-3 W, d, and a
-    linear dependence on (log K, log G, log delta) when ``slope``."""
+    linear dependence on (log K, log G, log delta) when ``slope`` (scaled by 1 / rms(prediction)
+    when ``relative``)."""
     g = torch.Generator().manual_seed(seed)
     points = scene.observation.points
     n = points.shape[0] * scene.particles.dim
@@ -83,21 +84,25 @@ def term_for(scene, seed=0, slope=True):
         factor=3e-3 * torch.randn(n, 3, generator=g), diag=1e-5 * torch.rand(n, generator=g) + 1e-6,
         rms=1e-3, explained=0.9, num_draws=40,
         slope=1e-3 * torch.randn(n, 3, generator=g) if slope else None, names=("K", "G", "delta") if slope else (),
-        centre=torch.tensor([8.0, 7.2, 0.8]) if slope else None, points=torch.as_tensor(points).clone())
+        centre=torch.tensor([8.0, 7.2, 0.8]) if slope else None, points=torch.as_tensor(points).clone(),
+        relative=relative)
 
 
-def test_discrepancy_likelihood_is_the_dense_gaussian(scene):
-    """With discrepancy=, log p(y | params) = log N(vec y; vec(H u + mu + B (phi - phi_bar)),
-    W W^T + diag(d + sigma^2)) written densely (1e-10); a mask gives the dense Gaussian of the
-    kept entries (rows and columns selected); replicated data keep shape (points, dim)."""
-    term = term_for(scene)
+@pytest.mark.parametrize("relative", [False, True])
+def test_discrepancy_likelihood_is_the_dense_gaussian(scene, relative):
+    """With discrepancy=, log p(y | params) = log N(vec y; vec(H u + s (mu + B (phi - phi_bar))),
+    s^2 W W^T + diag(s^2 d + sigma^2)) written densely (1e-10), s = 1 or rms(H u) if relative;
+    a mask gives the dense Gaussian of the kept entries (rows and columns selected);
+    replicated data keep shape (points, dim)."""
+    term = term_for(scene, relative=relative)
     model = elastic_plate(scene, NOMINAL, 0.01, discrepancy=term)
     params = {k: AT[k] for k in ("K", "G", "delta")}
     with torch.no_grad():
         mean = scene.observe(scene.solve(params))
     phi = torch.log(torch.stack([AT["K"], AT["G"], AT["delta"]]))
-    loc = mean.reshape(-1) + term.mean.reshape(-1) + term.slope @ (phi - term.centre)
-    cov = term.factor @ term.factor.T + torch.diag(term.diag + AT["sigma"] ** 2)
+    s = float(mean.square().mean().sqrt()) if relative else 1.0
+    loc = mean.reshape(-1) + s * (term.mean.reshape(-1) + term.slope @ (phi - term.centre))
+    cov = s**2 * term.covariance() + AT["sigma"] ** 2 * torch.eye(loc.shape[0])
     y = (loc + torch.linalg.cholesky(cov) @ torch.randn(loc.shape[0], generator=torch.Generator().manual_seed(1))
          ).reshape(mean.shape)
     tr = traced(model, y)

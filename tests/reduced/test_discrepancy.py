@@ -135,7 +135,28 @@ def test_points_and_shapes_are_checked():
     with pytest.raises(ValueError, match=r"has shape \(7, 2\) but the discrepancy was estimated at 6 points"):
         term.check_points(torch.rand(POINTS + 1, 2))
     with pytest.raises(ValueError, match="model's prediction"):
-        term.loc(torch.zeros(POINTS, 3))
+        term.gaussian(torch.zeros(POINTS, 3))
+
+
+def test_relative_error_of_a_scaled_model():
+    """reference = 1.1 model, model = (delta / K) t: the relative error 0.1 t / rms(t) is the same at
+    every draw, so the relative term has that mean and no variance;
+    the absolute term's variance is 0.01 var(delta / K) t^2. ``gaussian`` scales the relative
+    moments by s = rms(prediction): loc = 1.1 prediction."""
+    draws = draws_of(40)
+    reference = lambda p: 1.1 * cheap(p)  # noqa: E731
+    t = torch.linspace(0, 1, N).reshape(POINTS, DIM)
+    relative = estimate_discrepancy(reference, cheap, draws, relative=True)
+    assert torch.allclose(relative.mean, 0.1 * t / t.square().mean().sqrt(), rtol=0, atol=1e-12)
+    assert float(relative.covariance().abs().max()) < 1e-24
+    prediction = cheap(draws[0])
+    loc, factor, diag = relative.gaussian(prediction)
+    assert torch.allclose(loc, 1.1 * prediction, rtol=1e-12, atol=0)
+    absolute = estimate_discrepancy(reference, cheap, draws)
+    ratio = torch.tensor([float(p["delta"] / p["K"]) for p in draws])
+    # rank 1 holds it all: d is the floor, 1e-6 x the mean variance (~4e-9)
+    assert torch.allclose(absolute.covariance().diagonal(), 0.01 * ratio.var() * t.reshape(-1).square(),
+                          rtol=1e-9, atol=1e-8)
 
 
 def test_public_names():
