@@ -172,8 +172,8 @@ def estimate_discrepancy(reference: Callable, model: Callable, draws: Sequence[d
 
     ``reference`` and ``model``: callables ``params -> (points, dim)`` observations, e.g.
     ``lambda p: fine.observe(fine.solve(p))``; each is called once per draw, in order.
-    ``dependence``: ``"constant"`` (mean mu) or ``"linear"`` (mu + B (log params - mean), B by
-    least squares). ``relative``: model eps / rms(model(theta)) instead of eps (see the
+    ``dependence``: ``"constant"`` (mean mu) or ``"linear"`` (mu + B (log params - mean) over
+    every parameter the draws hold, B by least squares). ``relative``: model eps / rms(model(theta)) instead of eps (see the
     module). ``rank``: the number of principal components in W; by default the fewest
     that hold ``explained`` of the residual variance. d: the residual variance they leave,
     floored at ``floor`` times its mean. ``points``: the observation points, kept so that a
