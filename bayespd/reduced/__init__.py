@@ -1,6 +1,7 @@
-"""Reduced-order likelihoods: a POD basis with the operator kept affine in the moduli and
-splined in delta (``ReducedScene``), with an a-posteriori error estimate."""
-
+"""Reduced-order likelihoods (no Pyro): a POD reduced scene kept affine in the moduli and
+piecewise-polynomial in delta, with an a-posteriori error estimate (``ReducedScene``), and the
+approximation-error term of a model against a finer reference (``Discrepancy``)."""
+from .discrepancy import Discrepancy, estimate_discrepancy, prior_draws
 from .scene import ReducedScene
 
-__all__ = ["ReducedScene"]
+__all__ = ["ReducedScene", "Discrepancy", "estimate_discrepancy", "prior_draws"]
