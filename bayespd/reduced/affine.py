@@ -33,24 +33,31 @@ def coefficients(material, params: dict) -> torch.Tensor:
 
 
 class Terms:
-    """The Gram terms (B_t as a scipy CSR matrix, w_t) of K at ``params`` (no autograd)."""
+    """The Gram terms (B_t as a scipy CSR matrix, w_t) of K at ``params`` (no autograd);
+    ``data`` keeps each B_t's entries, so that a projection can reuse B_t V where they are the
+    same tensor as before (the bond directions do not depend on delta)."""
 
     def __init__(self, material, params: dict):
         with torch.no_grad():
             q = {k: torch.as_tensor(float(v), dtype=torch.float64) for k, v in params.items()}
-            self.terms = [(g.operator(d), np.broadcast_to(np.asarray(w), (g.shape[0],)))
-                          for g, d, w in material.terms(q)]
+            terms = material.terms(q)
+        self.data = [d for _, d, _ in terms]
+        self.terms = [(g.operator(d), np.broadcast_to(np.asarray(w), (g.shape[0],))) for g, d, w in terms]
 
     def apply(self, u: np.ndarray) -> np.ndarray:
         """K u for u over all dofs (flat, or (dofs, k))."""
         return sum(B.T @ (w.reshape(-1, *[1] * (u.ndim - 1)) * (B @ u)) for B, w in self.terms)
 
-    def project(self, V: np.ndarray, u_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def project(self, V: np.ndarray, u_c: np.ndarray, reuse: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(V^T A_t V) (T, R, R) and -V^T A_t u_c (T, R) for V (dofs, R) zero on the
-        prescribed dofs and u_c the prescribed values (zero elsewhere)."""
+        prescribed dofs and u_c the prescribed values (zero elsewhere); ``reuse``: a dict kept
+        between calls with the same V, holding B_t V for entries that did not change."""
         blocks, loads = [], []
-        for B, w in self.terms:
-            BV = B @ V
+        reuse = {} if reuse is None else reuse
+        for t, ((B, w), data) in enumerate(zip(self.terms, self.data)):
+            if reuse.get(t, (None,))[0] is not data:
+                reuse[t] = (data, B @ V)
+            BV = reuse[t][1]
             blocks.append(BV.T @ (w[:, None] * BV))
             loads.append(-(BV.T @ (w * (B @ u_c))))
         return np.stack(blocks), np.stack(loads)

@@ -48,18 +48,21 @@ class ReducedScene:
     the prior (K, G, delta, ...), the last ``validation`` of them held out to choose the rank;
     ``tolerance``: the largest observation error allowed, in the data's units (e.g. 1 % of the
     noise sd); ``delta_range``: the horizons the splines cover (default [h, delta_max], the
-    support of the default prior). ``report`` holds the build's figures.
+    support of the default prior); ``estimates``: how many draws of a fit get the error estimate
+    (``diagnostics``; evenly spaced, each costs O(bonds); None: every draw). ``report`` holds the
+    build's figures.
     """
 
     def __init__(self, scene, draws: list[dict], tolerance: float, *, validation: int | None = None,
-                 delta_range: tuple[float, float] | None = None, max_pieces: int = 256):
+                 delta_range: tuple[float, float] | None = None, max_pieces: int = 256,
+                 estimates: int | None = 100):
         start = time.perf_counter()
         check_reducible(scene)
         if scene.observation is None:
             raise ValueError("the reduced model predicts observations: give the scene an observation")
         if not tolerance > 0:
             raise ValueError(f"tolerance must be > 0 (an observation error in the data's units), got {tolerance}")
-        self.scene, self.tolerance = scene, float(tolerance)
+        self.scene, self.tolerance, self.estimates = scene, float(tolerance), estimates
         self.material, self.particles, self.observation = scene.material, scene.particles, scene.observation
         self.param_names = scene.param_names
         low, high = delta_range or (scene.particles.h, scene.material.bonds.delta_max)
@@ -94,7 +97,9 @@ class ReducedScene:
         f = (V.T @ c.free(scene.force).numpy())
 
         t0 = time.perf_counter()
+        self._reuse = {}  # B_t V of the terms whose entries do not depend on delta
         blocks, loads = self._delta_pieces(V, HV, low, high, max_pieces)
+        del self._reuse
         spline_s = time.perf_counter() - t0
 
         self._full = (V, torch.as_tensor(HV), obs0, torch.as_tensor(f), blocks, loads)
@@ -137,7 +142,8 @@ class ReducedScene:
         c = self.scene.constraints
         V_all = np.zeros((c.prescribed.numel(), V.shape[1]))
         V_all[c.free_dofs] = V
-        return Terms(self.material, {**self.reference, "delta": delta}).project(V_all, c.prescribed.reshape(-1).numpy())
+        return Terms(self.material, {**self.reference, "delta": delta}).project(
+            V_all, c.prescribed.reshape(-1).numpy(), self._reuse)
 
     def _delta_pieces(self, V, HV, low, high, max_pieces):
         """Polynomials in delta on the pieces between the partial volumes' breakpoints, each
@@ -208,15 +214,21 @@ class ReducedScene:
         return self.estimator(params)
 
     def diagnostics(self, draws: dict) -> dict:
-        """The error estimate at every draw (arrays (chain, draw)); a warning when any exceeds
-        the tolerance, naming how many."""
+        """The error estimate at ``estimates`` evenly spaced draws (arrays (chain, draw); NaN at
+        the others; every draw when ``estimates`` is None), with a warning when any exceeds the
+        tolerance, naming how many."""
         shape = np.shape(next(iter(draws.values())))[:2]
-        out = np.array([self.estimator({k: draws[k][c, d] for k in self.param_names})
-                        for c, d in np.ndindex(*shape)]).reshape(shape)
-        over = int((out > self.tolerance).sum())
+        total = shape[0] * shape[1]
+        picks = np.arange(total) if self.estimates is None or self.estimates >= total else \
+            np.linspace(0, total - 1, self.estimates).round().astype(int)
+        out = np.full(total, np.nan)
+        for i in picks:
+            c, d = np.unravel_index(i, shape)
+            out[i] = self.estimator({k: draws[k][c, d] for k in self.param_names})
+        over = int((out[picks] > self.tolerance).sum())
         if over:
             warnings.warn(f"the reduced model's estimated observation error exceeds its tolerance "
-                          f"{self.tolerance:.3g} at {over} of {out.size} draws (largest {out.max():.3g}): "
+                          f"{self.tolerance:.3g} at {over} of {len(picks)} draws (largest {np.nanmax(out):.3g}): "
                           "rebuild it with draws that cover the posterior, or correct the fit with the "
                           "full model (importance_correction)", stacklevel=2)
-        return {"reduced_error_estimate": out}
+        return {"reduced_error_estimate": out.reshape(shape)}

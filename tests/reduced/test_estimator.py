@@ -39,3 +39,16 @@ def test_diagnostics_report_every_draw_and_warn_above_tolerance(built):  # noqa:
             rom.diagnostics(arrays)
     finally:
         rom.tolerance = saved
+
+
+def test_diagnostics_thin_to_the_requested_draws(built):  # noqa: F811
+    import numpy as np
+    scene, rom, _ = built
+    d = draws(scene, 6, seed=14)
+    arrays = {k: np.array([[p[k] for p in d[:3]], [p[k] for p in d[3:]]]) for k in d[0]}
+    rom.estimates, saved = 3, rom.estimates
+    try:
+        out = rom.diagnostics(arrays)["reduced_error_estimate"].reshape(-1)
+    finally:
+        rom.estimates = saved
+    assert np.isfinite(out).tolist() == [True, False, True, False, False, True]  # flat 0, 2.5 -> 2 (half to even), 5
