@@ -17,9 +17,9 @@ def check_reducible(scene) -> None:
     if extra:
         raise ValueError(f"influence-function parameters {sorted(extra)} are not reduced: use an "
                          "influence function without parameters")
-    if scene.solver != "direct" or scene.eps:
-        raise ValueError("the reduced model is built from a direct-solver scene without "
-                         "confinement (solver='direct', eps=0)")
+    if scene.eps:
+        raise ValueError("the confinement eps is not split into terms: build the reduced model "
+                         "from a scene with eps=0")
 
 
 def coefficients(material, params: dict) -> torch.Tensor:

@@ -11,7 +11,7 @@ from bayespd.reduced import ReducedScene
 K0, G0 = 3000.0, 1400.0
 
 
-def plate(h=1.0, delta_max=3.0, rule="smooth", material=bp.LPS, pulled=False, **options):
+def plate(h=1.0, delta_max=3.0, rule="smooth", material=bp.LPS, pulled=False, solver="direct", **options):
     """A 20 x 10 plate clamped on the left, loaded (or, ``pulled``, displaced) on the right."""
     p = bp.grid_2d(20.0, 10.0, h)
     mat = material(p, bp.find_bonds(p, delta_max, rule), plane="stress", **options)
@@ -20,7 +20,7 @@ def plate(h=1.0, delta_max=3.0, rule="smooth", material=bp.LPS, pulled=False, **
         clamp.append(bp.Dirichlet.layer(p, "right", delta_max, (0.02, None)))
     loads = [] if pulled else [bp.Load(p.layer("right", h), (40.0, 15.0))]
     obs = bp.Observation(p, p.x[(p.x[:, 0] > delta_max) & (p.x[:, 0] < 20.0 - delta_max)])
-    return bp.Scene(mat, clamp, loads, obs)
+    return bp.Scene(mat, clamp, loads, obs, solver=solver)
 
 
 def draws(scene, n, seed):
@@ -92,6 +92,19 @@ def test_prescribed_displacement_and_load_factor():
         with torch.no_grad():
             error = float((rom.predict({**params, "load": 2.0}) - scene.predict(params)).abs().max())
         assert error <= 2 * tolerance
+
+
+def test_a_pcg_scene_reduces_to_the_same_model(built):
+    """Snapshots by PCG (large systems), its preconditioner in the estimator: the same
+    observations as the direct scene's reduced model, and an estimate within a factor 2."""
+    scene, rom, tolerance = built
+    pcg = ReducedScene(plate(solver="pcg"), draws(scene, 32, seed=0), tolerance)
+    assert pcg.rank == rom.rank
+    for params in draws(scene, 3, seed=7):
+        with torch.no_grad():
+            torch.testing.assert_close(pcg.predict(params), rom.predict(params), rtol=0, atol=1e-3 * tolerance)
+            error = float((pcg.predict(params) - scene.predict(params)).abs().max())
+        assert 0.5 < pcg.error_estimate(params) / error < 2.0
 
 
 def test_bond_based_law_has_one_term():
