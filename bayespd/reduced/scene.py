@@ -81,7 +81,7 @@ class ReducedScene:
             raise ValueError(f"a term coefficient is zero at the reference moduli {self.reference} (the "
                              "draws' median), and the others are scaled by it: give draws with another median")
         shapes = np.array([self._shape(d) for d in draws])
-        self.shape_range = (shapes.min(axis=0), shapes.max(axis=0))
+        self.shape_range, self._warned = (shapes.min(axis=0), shapes.max(axis=0)), False
 
         c = scene.constraints
         t0 = time.perf_counter()
@@ -132,6 +132,18 @@ class ReducedScene:
         depends on besides delta (its size scales with 1 / Theta_0)."""
         theta = (coefficients(self.material, params) / self.theta_ref).numpy()
         return theta[1:] / theta[0]
+
+    def _check_shape(self, theta: np.ndarray) -> None:
+        """Warn (once) when the moduli's ratios leave the range the snapshots covered: the
+        basis was not built for them (the error estimate at the draws will say how far off)."""
+        low, high = self.shape_range
+        ratio = theta[1:] / theta[0]
+        if not self._warned and np.any((ratio < low - 0.05 * abs(low)) | (ratio > high + 0.05 * abs(high))):
+            self._warned = True
+            warnings.warn(f"the moduli's term ratios {ratio.round(4).tolist()} leave the range "
+                          f"[{low.round(4).tolist()}, {high.round(4).tolist()}] of the snapshots: the "
+                          "reduced model extrapolates; rebuild it with draws that cover these moduli "
+                          "(e.g. from a wider prior)", stacklevel=3)
 
     def _full_solve(self, params: dict) -> np.ndarray:
         with torch.no_grad():
@@ -188,6 +200,7 @@ class ReducedScene:
         _, _, _, f, blocks, loads = self._full
         q = {k: torch.as_tensor(params[k], dtype=torch.float64) for k in self.param_names}
         theta = coefficients(self.material, q) / self.theta_ref
+        self._check_shape(theta.detach().numpy())
         K = torch.tensordot(theta, blocks(q["delta"])[:, :r, :r], 1)
         b = f[:r] * torch.as_tensor(params.get("load", 1.0), dtype=torch.float64) \
             + torch.tensordot(theta, loads(q["delta"])[:, :r], 1)

@@ -116,6 +116,17 @@ def test_bond_based_law_has_one_term():
         assert float((rom.predict(params) - scene.predict(params)).abs().max()) <= 2 * tolerance
 
 
+def test_moduli_outside_the_snapshots_warn_once(built):
+    scene, rom, _ = built
+    rom._warned = False
+    with pytest.warns(UserWarning, match="leave the range.*rebuild it with draws that cover"):
+        rom.predict({"K": K0, "G": 20 * G0, "delta": 2.0})
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rom.predict({"K": K0, "G": 20 * G0, "delta": 2.0})
+
+
 def test_refusals_name_the_fix(built):
     scene, rom, tolerance = built
     with pytest.raises(ValueError, match="outside the range.*rebuild"):
