@@ -16,10 +16,12 @@ particles right of the clamp. Methods, each timed:
 
 The reference posterior is full-model NUTS on the demo scene, and elsewhere the importance
 reweighting of the reduced posterior by the full model at ``--reference`` draws (k and ESS
-reported): errors are |mean - reference mean| / reference sd and sd / reference sd. The reduced
+reported): errors are |mean - reference mean| / reference sd and sd / reference sd; the
+reduced model's own bias is the shift of the weighted from the unweighted moments of those same
+draws (their Monte-Carlo error cancels), the figure the targets use. The reduced
 model's observation error is reported as its estimate at every draw and its true value at the
 reference draws, against 1 % of the noise sd. Writes runs/reduced_likelihood/metrics.json and
-error_vs_time.png.
+error_vs_time.png (runs/reduced_likelihood_<scenes>/ for other scenes than the default).
 
     python experiments/reduced_likelihood.py [--quick] [--scenes demo 5k] [--draws 300 --warmup 200]
 """
@@ -152,9 +154,10 @@ def run_scene(name: str, args) -> dict:
         "ess_bulk": e, "ess_min": min(e.values()), "moments": moments(tree),
         "divergences": int(tree["sample_stats"]["diverging"].sum()),
         "time_to_ess_400_s": build_s + nuts_s * max(1.0, ESS_TARGET / min(e.values())),
-        "reduced_error_estimate_max": float(estimate.max()), "reduced_error_estimate_mean": float(estimate.mean())}
+        "reduced_error_estimate_max": float(np.nanmax(estimate)), "reduced_error_estimate_mean": float(np.nanmean(estimate)),
+        "reduced_error_estimated_draws": int(np.isfinite(estimate).sum())}
     print(f"  reduced NUTS: build {build_s:.1f} s + fit {nuts_s:.1f} s (sampling {sampling:.1f} s), "
-          f"ESS { {k: round(v) for k, v in e.items()} }, error estimate max {estimate.max():.3g} "
+          f"ESS { {k: round(v) for k, v in e.items()} }, error estimate max {np.nanmax(estimate):.3g} "
           f"(1 % of sigma: {0.01 * sigma:.3g})", flush=True)
 
     t0 = time.perf_counter()
@@ -168,10 +171,11 @@ def run_scene(name: str, args) -> dict:
 
     if scene.particles.n <= args.full_laplace_below:
         t0 = time.perf_counter()
-        laplace = fit(full_model, data, "laplace", num_samples=2000, seed=args.seed, progress=False)
+        laplace = fit(full_model, data, "laplace", num_samples=200, seed=args.seed, progress=False)  # replayed: a full solve each
         out["methods"]["full_laplace"] = {"wall_time_s": time.perf_counter() - t0, "moments": moments(laplace)}
     t0 = time.perf_counter()
-    svi = fit(reduced_model, data, "svi", svi_steps=args.svi_steps, num_samples=2000, seed=args.seed, progress=False)
+    svi = fit(reduced_model, data, "svi", svi_steps=args.svi_steps, num_samples=2000, seed=args.seed, init="map",
+              progress=False)
     out["methods"]["reduced_svi"] = {"wall_time_s": build_s + time.perf_counter() - t0, "moments": moments(svi)}
 
     if name == "demo":
@@ -187,6 +191,14 @@ def run_scene(name: str, args) -> dict:
         how = (f"PSIS reweighting of the reduced posterior by the full model at {args.reference} draws "
                f"(k = {float(ref_tree['importance'].attrs['pareto_k']):.2f}, ESS "
                f"{float(ref_tree['importance'].attrs['ess']):.0f}, {time.perf_counter() - t0:.0f} s)")
+        # the reduced model's own bias: weighted against unweighted moments of the same draws
+        # (the draws' Monte-Carlo error cancels; only the weights' departure from uniform remains)
+        group = ref_tree["importance"]
+        w = np.exp(group["log_weight_psis"].values)
+        out["reduced_bias"] = {k: {"mean_shift_in_sd": abs(float(w @ group[k].values) - float(group[k].values.mean()))
+                                   / float(group[k].values.std()),
+                                   "sd_ratio": float(np.sqrt(w @ (group[k].values - w @ group[k].values) ** 2))
+                                   / float(group[k].values.std())} for k in NAMES}
     out["reference"] = {"how": how, "moments": reference}
     if reference is None:
         raise RuntimeError(f"the reference posterior is unreliable ({how}): raise --reference or --snapshots")
@@ -201,8 +213,10 @@ def run_scene(name: str, args) -> dict:
 def targets_of(name: str, result: dict) -> dict:
     rn = result["methods"]["reduced_nuts"]
     corr = result["methods"]["reduced_nuts_corrected"]
-    worst_mean = max(v["mean_error_in_sd"] for v in rn["errors"].values())
-    worst_sd = max(abs(v["sd_ratio"] - 1) for v in rn["errors"].values())
+    bias = result.get("reduced_bias") or {k: {"mean_shift_in_sd": v["mean_error_in_sd"], "sd_ratio": v["sd_ratio"]}
+                                          for k, v in rn["errors"].items()}  # demo: against full NUTS
+    worst_mean = max(v["mean_shift_in_sd"] for v in bias.values())
+    worst_sd = max(abs(v["sd_ratio"] - 1) for v in bias.values())
     bound = 0.01 * result["noise_sd"]
     t = {f"{name}_time_to_ess_400_s": (rn["time_to_ess_400_s"], TIME_TARGET[name], rn["time_to_ess_400_s"] <= TIME_TARGET[name]),
          f"{name}_ess_min": (rn["ess_min"], ESS_TARGET, rn["ess_min"] >= ESS_TARGET),
@@ -253,13 +267,14 @@ def main():
     if args.quick:
         args.scenes, args.draws, args.warmup, args.svi_steps = ["demo"], 100, 60, 300
     start = time.perf_counter()
-    out = run_dir("reduced_likelihood")
+    name = "reduced_likelihood" + ("" if args.scenes == ["demo", "5k"] else "_" + "_".join(args.scenes))
+    out = run_dir(name)
     results = {name: run_scene(name, args) for name in args.scenes}
     targets = {}
     for name, result in results.items():
         targets.update(targets_of(name, result))
     figure(out, results)
-    write_metrics("reduced_likelihood", {"wall_time_s": time.perf_counter() - start, "targets": targets,
+    write_metrics(name, {"wall_time_s": time.perf_counter() - start, "targets": targets,
                                          "scenes": results, "settings": vars(args)})
 
 

@@ -128,14 +128,15 @@ class ReducedScene:
             "snapshot_s": snapshot_s, "spline_s": spline_s, "build_s": time.perf_counter() - start}
 
     def _shape(self, params: dict) -> np.ndarray:
-        """The ratios Theta_t / Theta_0 relative to the reference: what the solution's shape
-        depends on besides delta (its size scales with 1 / Theta_0)."""
-        theta = (coefficients(self.material, params) / self.theta_ref).numpy()
+        """The ratios Theta_t / Theta_0: what the solution's shape depends on besides delta
+        (its size scales with 1 / Theta_0)."""
+        theta = coefficients(self.material, params).numpy()
         return theta[1:] / theta[0]
 
     def _check_shape(self, theta: np.ndarray) -> None:
         """Warn (once) when the moduli's ratios leave the range the snapshots covered: the
-        basis was not built for them (the error estimate at the draws will say how far off)."""
+        basis was not built for them (the error estimate at the draws will say how far off; an
+        optimiser's or a sampler's excursion can cause it too)."""
         low, high = self.shape_range
         ratio = theta[1:] / theta[0]
         if not self._warned and np.any((ratio < low - 0.05 * abs(low)) | (ratio > high + 0.05 * abs(high))):
@@ -200,7 +201,7 @@ class ReducedScene:
         _, _, _, f, blocks, loads = self._full
         q = {k: torch.as_tensor(params[k], dtype=torch.float64) for k in self.param_names}
         theta = coefficients(self.material, q) / self.theta_ref
-        self._check_shape(theta.detach().numpy())
+        self._check_shape((theta * self.theta_ref).detach().numpy())
         K = torch.tensordot(theta, blocks(q["delta"])[:, :r, :r], 1)
         b = f[:r] * torch.as_tensor(params.get("load", 1.0), dtype=torch.float64) \
             + torch.tensordot(theta, loads(q["delta"])[:, :r], 1)
