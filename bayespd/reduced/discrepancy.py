@@ -24,8 +24,7 @@ Kaipio & Somersalo's choice; cheap, estimated once for every data set, conservat
 averages the error over the whole prior, so where eps varies strongly with theta its covariance
 is wide and the posterior with it too) or from a first posterior approximation of the data set
 at hand (``posterior_draws``: the posterior-informed / iterative approximation error of
-Lipponen, Seppanen & Kaipio 2013, "Electrical impedance tomography imaging with reduced-order
-model based on proper orthogonal decomposition", J. Electron. Imaging 22 023008, and Calvetti,
+Lipponen, Seppanen & Kaipio 2013, J. Electron. Imaging 22 023008, and Calvetti,
 Dunlop, Somersalo & Stuart 2018, "Iterative updating of model error for Bayesian inversion",
 Inverse Problems 34 025008): fit without the term (Laplace, NUTS), draw from that posterior with
 its covariance inflated (x4 say, so that the draws also cover where the corrected posterior
