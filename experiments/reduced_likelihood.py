@@ -180,7 +180,7 @@ def run_scene(name: str, args) -> dict:
 
     if name == "demo":
         t0 = time.perf_counter()
-        full = fit(full_model, data, "nuts", **{**nuts, "num_samples": 2 * args.draws})
+        full = fit(full_model, data, "nuts", **nuts)
         out["methods"]["full_nuts"] = {"wall_time_s": time.perf_counter() - t0, "ess_bulk": ess(full),
                                        "moments": moments(full)}
         reference, how = out["methods"]["full_nuts"]["moments"], "full-model NUTS"
@@ -267,14 +267,14 @@ def main():
     if args.quick:
         args.scenes, args.draws, args.warmup, args.svi_steps = ["demo"], 100, 60, 300
     start = time.perf_counter()
-    name = "reduced_likelihood" + ("" if args.scenes == ["demo", "5k"] else "_" + "_".join(args.scenes))
-    out = run_dir(name)
+    run_name = "reduced_likelihood" + ("" if args.scenes == ["demo", "5k"] else "_" + "_".join(args.scenes))
+    out = run_dir(run_name)
     results = {name: run_scene(name, args) for name in args.scenes}
     targets = {}
     for name, result in results.items():
         targets.update(targets_of(name, result))
     figure(out, results)
-    write_metrics(name, {"wall_time_s": time.perf_counter() - start, "targets": targets,
+    write_metrics(run_name, {"wall_time_s": time.perf_counter() - start, "targets": targets,
                                          "scenes": results, "settings": vars(args)})
 
 
