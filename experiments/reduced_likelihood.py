@@ -41,15 +41,14 @@ from common import run_dir, write_metrics
 
 from bayespd.infer import UnreliableCorrectionError, corrected_summary, fit, importance_correction, to_inference_data
 from bayespd.models.elastic_plate import elastic_plate
-from bayespd.models.priors import elastic_priors
 from bayespd.observe import locate
-from bayespd.reduced import ReducedScene
 
 NAMES = ("K", "G", "delta", "sigma")
 SCENES = {"demo": (2.0, 1.0), "5k": (0.4, 0.2), "40k": (1 / 7, 0.1)}  # (h, h_data) in mm
 PCG_ABOVE = 2000  # particles
 ESS_TARGET = 400
 TIME_TARGET = {"demo": 120.0, "5k": 120.0, "40k": 600.0}
+SNAPSHOTS = {"demo": 60, "5k": 30, "40k": 30}  # the demo's 188 particles: solves cost ms, rank ~20
 
 
 def problem(h: float, h_data: float, seed: int):
@@ -73,12 +72,6 @@ def iterative(scene):
     if scene.particles.n <= PCG_ABOVE:
         return scene
     return bp.Scene(scene.material, scene.dirichlet, scene.loads, scene.observation, solver="pcg")
-
-
-def prior_draws(scene, noise_scale: float, n: int, seed: int) -> list[dict]:
-    priors = elastic_priors(scene, demo.NOMINAL, noise_scale)
-    torch.manual_seed(seed)
-    return [{k: float(priors[k].sample()) for k in ("K", "G", "delta")} for _ in range(n)]
 
 
 def moments(tree) -> dict:
@@ -137,7 +130,8 @@ def run_scene(name: str, args) -> dict:
     out = {"particles": scene.particles.n, "points": len(y), "truth": truth, "methods": {}}
 
     t0 = time.perf_counter()
-    reduced = ReducedScene(scene, prior_draws(scene, noise_scale, args.snapshots, args.seed), 0.01 * sigma)
+    draws = bp.prior_draws(full_model.priors, args.snapshots or SNAPSHOTS[name], args.seed, names=["K", "G", "delta"])
+    reduced = bp.ReducedScene(scene, draws, 0.01 * sigma)
     build_s = time.perf_counter() - t0
     out["reduced_model"] = {k: v for k, v in reduced.report.items() if k != "singular_values"}
     print(f"  reduced model: rank {reduced.rank}, {reduced.report['delta_pieces']} pieces in delta, "
@@ -256,7 +250,8 @@ def main():
     parser.add_argument("--scenes", nargs="+", default=["demo", "5k"], choices=list(SCENES))
     parser.add_argument("--draws", type=int, default=400)
     parser.add_argument("--warmup", type=int, default=200)
-    parser.add_argument("--snapshots", type=int, default=30, help="full solves the basis is built from")
+    parser.add_argument("--snapshots", type=int, default=None,
+                        help="full solves the basis is built from (default: SNAPSHOTS per scene)")
     parser.add_argument("--correction", type=int, default=40, help="full solves of the correction")
     parser.add_argument("--reference", type=int, default=200, help="full solves of the reference posterior")
     parser.add_argument("--svi-steps", type=int, default=1000)

@@ -44,7 +44,8 @@ def breakpoints(bonds, low: float, high: float) -> np.ndarray:
 class ReducedScene:
     """A Scene's ``predict``/``solve`` from a reduced basis (module docstring).
 
-    ``scene``: the full scene (direct solver, with an observation); ``draws``: params dicts over
+    ``scene``: the full scene (with an observation; direct or PCG: the snapshots are its solves);
+    ``draws``: params dicts over
     the prior (K, G, delta, ...), the last ``validation`` of them held out to choose the rank;
     ``tolerance``: the largest observation error allowed, in the data's units (e.g. 1 % of the
     noise sd); ``delta_range``: the horizons the splines cover (default [h, delta_max], the
@@ -65,6 +66,7 @@ class ReducedScene:
         self.scene, self.tolerance, self.estimates = scene, float(tolerance), estimates
         self.material, self.particles, self.observation = scene.material, scene.particles, scene.observation
         self.param_names = scene.param_names
+        self._out_shape = (self.observation.n, self.particles.dim)
         low, high = delta_range or (scene.particles.h, scene.material.bonds.delta_max)
         draws = [{k: float(d[k]) for k in self.param_names} for d in draws]
         validation = max(4, len(draws) // 5) if validation is None else validation
@@ -83,49 +85,54 @@ class ReducedScene:
         shapes = np.array([self._shape(d) for d in draws])
         self.shape_range, self._warned = (shapes.min(axis=0), shapes.max(axis=0)), False
 
-        c = scene.constraints
         t0 = time.perf_counter()
         full = np.stack([self._full_solve(d) for d in draws], axis=1)
         snapshot_s = time.perf_counter() - t0
-        train, held = full[:, :-validation], full[:, -validation:]
-        V, singular = pod(train, 0.0)  # every direction; the rank is chosen below
-        H = scene.observation_matrix()
-        n_points, dim = self.observation.n, self.particles.dim
-        self._out_shape = (n_points, dim)
-        HV = torch.sparse.mm(H, torch.as_tensor(V)).numpy()
-        obs0 = scene.observe(c.expand(torch.zeros(len(c.free_dofs), dtype=torch.float64))).reshape(-1)
-        f = (V.T @ c.free(scene.force).numpy())
-
+        V, singular = pod(full[:, :-validation], 0.0)  # every direction; the rank is chosen below
         t0 = time.perf_counter()
+        self._full = self._operators(V, low, high, max_pieces)
+        operators_s = time.perf_counter() - t0
+        held = draws[-validation:]
+        observed = self._observed(full[:, -validation:])
+        errors = self._choose_rank(held, observed)
+        self.estimator = ErrorEstimator(self, {**self.reference, "delta": float(np.median([d["delta"] for d in draws]))})
+        truth = np.abs(self._predict_numpy(held) - observed).max(axis=1)
+        self.report = {
+            "rank": self.rank, "snapshots": V.shape[1], "validation_draws": validation,
+            "validation_error_max": errors[-1], "validation_error_by_rank": errors,
+            "singular_values": (singular / singular[0]).tolist(), "delta_pieces": len(self._full[4].breaks) - 1,
+            "delta_range": [low, high], "reference": self.reference,
+            "estimator_effectivity": [self.estimator(d) / max(t, 1e-300) for d, t in zip(held, truth)],
+            "snapshot_s": snapshot_s, "operators_s": operators_s, "build_s": time.perf_counter() - start}
+
+    def _observed(self, u_free: np.ndarray) -> np.ndarray:
+        """The observations (columns, points * dim) of free-dof fields (n_free, columns)."""
+        c = self.scene.constraints
+        obs0 = self.scene.observe(c.expand(torch.zeros(len(c.free_dofs), dtype=torch.float64))).reshape(-1)
+        return torch.sparse.mm(self.scene.observation_matrix(), torch.as_tensor(u_free)).numpy().T + obs0.numpy()
+
+    def _operators(self, V, low, high, max_pieces) -> tuple:
+        """(V, H V, the prescribed dofs' observations, V^T f, blocks(delta), loads(delta))."""
+        obs0 = self._observed(np.zeros((V.shape[0], 1)))[0]
+        HV = (self._observed(V) - obs0).T
         self._reuse = {}  # B_t V of the terms whose entries do not depend on delta
         blocks, loads = self._delta_pieces(V, HV, low, high, max_pieces)
         del self._reuse
-        spline_s = time.perf_counter() - t0
+        f = V.T @ self.scene.constraints.free(self.scene.force).numpy()
+        return V, torch.as_tensor(HV), torch.as_tensor(obs0), torch.as_tensor(f), blocks, loads
 
-        self._full = (V, torch.as_tensor(HV), obs0, torch.as_tensor(f), blocks, loads)
-        H_held = torch.sparse.mm(H, torch.as_tensor(held)).numpy().T + obs0.numpy()
+    def _choose_rank(self, held: list[dict], observed: np.ndarray) -> list[float]:
+        """The smallest rank whose held-out observation error is within tolerance / 2 (half:
+        the held-out draws are few); the errors by rank up to it."""
         errors = []
-        for r in range(1, V.shape[1] + 1):
+        for r in range(1, self._full[0].shape[1] + 1):
             self.rank = r
-            with torch.no_grad():
-                pred = np.stack([self.predict(d).reshape(-1).numpy() for d in draws[-validation:]])
-            errors.append(float(np.abs(pred - H_held).max()))
-            if errors[-1] <= tolerance / 2:  # half: the held-out draws are few
-                break
-        else:
-            raise ValueError(f"the basis from {train.shape[1]} snapshots reaches a held-out observation "
-                             f"error of {min(errors):.3g} at best, above half the tolerance, {tolerance / 2:.3g}: "
-                             "give more draws (snapshots), or a larger tolerance")
-        self.estimator = ErrorEstimator(self, {**self.reference, "delta": float(np.median([d["delta"] for d in draws]))})
-        estimates = [self.estimator(d) for d in draws[-validation:]]
-        truth = np.abs(self._predict_numpy(draws[-validation:]) - H_held).max(axis=1)
-        self.report = {
-            "rank": self.rank, "snapshots": train.shape[1], "validation_draws": validation,
-            "validation_error_max": errors[-1], "validation_error_by_rank": errors,
-            "singular_values": (singular / singular[0]).tolist(), "delta_pieces": len(blocks.breaks) - 1,
-            "delta_range": [low, high], "reference": self.reference,
-            "estimator_effectivity": (np.asarray(estimates) / np.maximum(truth, 1e-300)).tolist(),
-            "snapshot_s": snapshot_s, "spline_s": spline_s, "build_s": time.perf_counter() - start}
+            errors.append(float(np.abs(self._predict_numpy(held) - observed).max()))
+            if errors[-1] <= self.tolerance / 2:
+                return errors
+        raise ValueError(f"the basis from {self._full[0].shape[1]} snapshots reaches a held-out observation "
+                         f"error of {min(errors):.3g} at best, above half the tolerance, {self.tolerance / 2:.3g}: "
+                         "give more draws (snapshots), or a larger tolerance")
 
     def _shape(self, params: dict) -> np.ndarray:
         """The ratios Theta_t / Theta_0: what the solution's shape depends on besides delta

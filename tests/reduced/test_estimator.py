@@ -1,5 +1,7 @@
 """The residual-based error estimate: run to convergence it is the true observation error;
 at its default stopping rule it stays within a factor 2 of it."""
+import numpy as np
+import pytest
 import torch
 
 from bayespd.reduced.estimator import ErrorEstimator
@@ -25,10 +27,9 @@ def test_default_estimate_within_a_factor_two(built):  # noqa: F811
     assert all(0.5 < e < 2.0 for e in rom.report["estimator_effectivity"])
 
 
+@pytest.mark.filterwarnings("ignore:the moduli's term ratios")  # a draw outside the snapshots: tested in test_scene
 def test_diagnostics_report_every_draw_and_warn_above_tolerance(built):  # noqa: F811
     scene, rom, tolerance = built
-    import numpy as np
-    import pytest
     d = draws(scene, 4, seed=13)
     arrays = {k: np.array([[p[k] for p in d[:2]], [p[k] for p in d[2:]]]) for k in d[0]}
     out = rom.diagnostics(arrays)["reduced_error_estimate"]
@@ -42,7 +43,6 @@ def test_diagnostics_report_every_draw_and_warn_above_tolerance(built):  # noqa:
 
 
 def test_diagnostics_thin_to_the_requested_draws(built):  # noqa: F811
-    import numpy as np
     scene, rom, _ = built
     d = draws(scene, 6, seed=14)
     arrays = {k: np.array([[p[k] for p in d[:3]], [p[k] for p in d[3:]]]) for k in d[0]}
