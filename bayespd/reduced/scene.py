@@ -83,7 +83,7 @@ class ReducedScene:
             raise ValueError(f"a term coefficient is zero at the reference moduli {self.reference} (the "
                              "draws' median), and the others are scaled by it: give draws with another median")
         shapes = np.array([self._shape(d) for d in draws])
-        self.shape_range, self._warned = (shapes.min(axis=0), shapes.max(axis=0)), False
+        self.shape_range = (shapes.min(axis=0), shapes.max(axis=0))
 
         t0 = time.perf_counter()
         full = np.stack([self._full_solve(d) for d in draws], axis=1)
@@ -140,18 +140,11 @@ class ReducedScene:
         theta = coefficients(self.material, params).numpy()
         return theta[1:] / theta[0]
 
-    def _check_shape(self, theta: np.ndarray) -> None:
-        """Warn (once) when the moduli's ratios leave the range the snapshots covered: the
-        basis was not built for them (the error estimate at the draws will say how far off; an
-        optimiser's or a sampler's excursion can cause it too)."""
+    def _outside(self, params: dict) -> bool:
+        """Whether the moduli's ratios leave the range the snapshots covered (5 % slack)."""
         low, high = self.shape_range
-        ratio = theta[1:] / theta[0]
-        if not self._warned and np.any((ratio < low - 0.05 * abs(low)) | (ratio > high + 0.05 * abs(high))):
-            self._warned = True
-            warnings.warn(f"the moduli's term ratios {ratio.round(4).tolist()} leave the range "
-                          f"[{low.round(4).tolist()}, {high.round(4).tolist()}] of the snapshots: the "
-                          "reduced model extrapolates; rebuild it with draws that cover these moduli "
-                          "(e.g. from a wider prior)", stacklevel=3)
+        ratio = self._shape(params)
+        return bool(np.any((ratio < low - 0.05 * abs(low)) | (ratio > high + 0.05 * abs(high))))
 
     def _full_solve(self, params: dict) -> np.ndarray:
         with torch.no_grad():
@@ -208,7 +201,6 @@ class ReducedScene:
         _, _, _, f, blocks, loads = self._full
         q = {k: torch.as_tensor(params[k], dtype=torch.float64) for k in self.param_names}
         theta = coefficients(self.material, q) / self.theta_ref
-        self._check_shape((theta * self.theta_ref).detach().numpy())
         K = torch.tensordot(theta, blocks(q["delta"])[:, :r, :r], 1)
         b = f[:r] * torch.as_tensor(params.get("load", 1.0), dtype=torch.float64) \
             + torch.tensordot(theta, loads(q["delta"])[:, :r], 1)
@@ -237,15 +229,23 @@ class ReducedScene:
     def diagnostics(self, draws: dict) -> dict:
         """The error estimate at ``estimates`` evenly spaced draws (arrays (chain, draw); NaN at
         the others; every draw when ``estimates`` is None), with a warning when any exceeds the
-        tolerance, naming how many."""
+        tolerance or lies outside the snapshots' moduli, naming how many."""
         shape = np.shape(next(iter(draws.values())))[:2]
         total = shape[0] * shape[1]
         picks = np.arange(total) if self.estimates is None or self.estimates >= total else \
             np.linspace(0, total - 1, self.estimates).round().astype(int)
         out = np.full(total, np.nan)
+        outside = 0
         for i in picks:
             c, d = np.unravel_index(i, shape)
-            out[i] = self.estimator({k: draws[k][c, d] for k in self.param_names})
+            params = {k: draws[k][c, d] for k in self.param_names}
+            out[i] = self.estimator(params)
+            outside += self._outside(params)
+        if outside:
+            warnings.warn(f"{outside} of {len(picks)} draws have moduli whose ratios leave the range of the "
+                          f"snapshots ({self.shape_range[0].round(4).tolist()} to {self.shape_range[1].round(4).tolist()}): "
+                          "the reduced model extrapolates there; rebuild it with draws that cover them "
+                          "(e.g. from a wider prior)", stacklevel=2)
         over = int((out[picks] > self.tolerance).sum())
         if over:
             warnings.warn(f"the reduced model's estimated observation error exceeds its tolerance "

@@ -116,15 +116,13 @@ def test_bond_based_law_has_one_term():
         assert float((rom.predict(params) - scene.predict(params)).abs().max()) <= 2 * tolerance
 
 
-def test_moduli_outside_the_snapshots_warn_once(built):
+@pytest.mark.filterwarnings("ignore:the reduced model's estimated observation error")
+def test_draws_outside_the_snapshots_moduli_are_counted(built):
     scene, rom, _ = built
-    rom._warned = False
-    with pytest.warns(UserWarning, match="leave the range.*rebuild it with draws that cover"):
-        rom.predict({"K": K0, "G": 20 * G0, "delta": 2.0})
-    import warnings
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        rom.predict({"K": K0, "G": 20 * G0, "delta": 2.0})
+    inside, outside = {"K": K0, "G": G0, "delta": 2.0}, {"K": K0, "G": 20 * G0, "delta": 2.0}
+    arrays = {k: np.array([[inside[k], outside[k], outside[k]]]) for k in inside}
+    with pytest.warns(UserWarning, match="2 of 3 draws have moduli whose ratios leave.*rebuild it"):
+        rom.diagnostics(arrays)
 
 
 def test_refusals_name_the_fix(built):
@@ -139,3 +137,31 @@ def test_refusals_name_the_fix(built):
         ReducedScene(scene, draws(scene, 6, seed=0), tolerance)
     with pytest.raises(ValueError, match="surface_correction=False"):
         ReducedScene(plate(surface_correction=True), draws(scene, 24, seed=0), tolerance)
+
+
+def test_a_fit_reports_the_error_estimate_per_draw(built):
+    """A Pyro model on the reduced scene: ``fit`` stores the estimate in ``sample_stats`` at
+    ``estimates`` evenly spaced draws, and it agrees with the true error there."""
+    from bayespd.infer import fit
+    from bayespd.models.elastic_plate import elastic_plate
+
+    scene, rom, tolerance = built
+    truth = {"K": K0, "G": G0, "delta": 2.2}
+    with torch.no_grad():
+        clean = scene.predict(truth)
+    sigma = 0.01 * float(clean.abs().max())
+    y = clean + sigma * torch.randn(clean.shape, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
+    rom.estimates, saved = 5, rom.estimates
+    try:
+        tree = fit(elastic_plate(rom, {"K": K0, "G": G0}, 5 * sigma), {"y": y}, "laplace", num_samples=20,
+                   seed=0, progress=False)
+    finally:
+        rom.estimates = saved
+    estimate = tree["sample_stats"]["reduced_error_estimate"].values
+    assert estimate.shape == (1, 20) and int(np.isfinite(estimate).sum()) == 5
+    post = tree["posterior"]
+    for i in np.flatnonzero(np.isfinite(estimate[0])):
+        params = {k: float(post[k].values[0, i]) for k in ("K", "G", "delta")}
+        with torch.no_grad():
+            error = float((rom.predict(params) - scene.predict(params)).abs().max())
+        assert 0.5 < estimate[0, i] / error < 2.0
