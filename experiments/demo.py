@@ -238,33 +238,38 @@ def main(quick: bool, seed: int = 0):
           f"wrote {out}")
 
 
+def interval_cells(row) -> str:
+    """'[low, high] | covered' of a posterior_report row."""
+    return f"[{row['interval_90'][0]:.4g}, {row['interval_90'][1]:.4g}] | {row['covers_truth']}"
+
+
+def markdown_table(header: list, cells) -> str:
+    """A markdown table with a row per parameter: ``cells(k)`` gives the row after its name."""
+    rows = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return "\n".join(rows + [f"| {k} | {cells(k)} |" for k in NAMES])
+
+
 def render_table(truth, tik, methods):
-    rows = ["| parameter | truth | Tikhonov | SVI mean ± sd | SVI 90 % | covered | NUTS mean ± sd | NUTS 90 % | covered |",
-            "|---|---|---|---|---|---|---|---|---|"]
-    for k in NAMES:
-        s, n = methods["svi"]["posterior"][k], methods["nuts"]["posterior"][k]
-        rows.append(f"| {k} | {truth[k]:.4g} | {tik[k]:.4g} | {s['mean']:.4g} ± {s['sd']:.2g} | "
-                    f"[{s['interval_90'][0]:.4g}, {s['interval_90'][1]:.4g}] | {s['covers_truth']} | "
-                    f"{n['mean']:.4g} ± {n['sd']:.2g} | [{n['interval_90'][0]:.4g}, {n['interval_90'][1]:.4g}] | "
-                    f"{n['covers_truth']} |")
+    s, n = methods["svi"]["posterior"], methods["nuts"]["posterior"]
+    table = markdown_table(["parameter", "truth", "Tikhonov", "SVI mean ± sd", "SVI 90 %", "covered", "NUTS mean ± sd",
+                            "NUTS 90 %", "covered"],
+                           lambda k: f"{truth[k]:.4g} | {tik[k]:.4g} | {s[k]['mean']:.4g} ± {s[k]['sd']:.2g} | "
+                                     f"{interval_cells(s[k])} | {n[k]['mean']:.4g} ± {n[k]['sd']:.2g} | {interval_cells(n[k])}")
     secs = " | ".join(f"{m} {methods[m]['wall_time_s']:.1f} s ({methods[m]['gradient_evaluations']} grads)"
                       for m in methods)
-    return "\n".join(rows) + f"\n\nSeconds per method: {secs}"
+    return table + f"\n\nSeconds per method: {secs}"
 
 
 def discrepancy_table(truth, methods, discrepancy):
-    rows = ["| parameter | truth | NUTS 90 % | covered | NUTS + error term 90 % | covered | width ratio |",
-            "|---|---|---|---|---|---|---|"]
-    for k in NAMES:
-        n, d = methods["nuts"]["posterior"][k], methods["nuts_discrepancy"]["posterior"][k]
-        rows.append(f"| {k} | {truth[k]:.4g} | [{n['interval_90'][0]:.4g}, {n['interval_90'][1]:.4g}] | "
-                    f"{n['covers_truth']} | [{d['interval_90'][0]:.4g}, {d['interval_90'][1]:.4g}] | "
-                    f"{d['covers_truth']} | {discrepancy['width_ratio'][k]:.2f} |")
+    n, d = methods["nuts"]["posterior"], methods["nuts_discrepancy"]["posterior"]
+    rows = markdown_table(["parameter", "truth", "NUTS 90 %", "covered", "NUTS + error term 90 %", "covered", "width ratio"],
+                          lambda k: f"{truth[k]:.4g} | {interval_cells(n[k])} | {interval_cells(d[k])} | "
+                                    f"{discrepancy['width_ratio'][k]:.2f}")
     return ("Posterior-informed approximation-error term (Kaipio & Somersalo 2007, Calvetti et al. 2018): "
             f"rank {discrepancy['rank']} from {discrepancy['draws']} draws of the NUTS posterior without it "
             f"(covariance x {discrepancy['inflate']:g}) in {discrepancy['estimate_wall_time_s']:.1f} s; its rms is "
             f"{discrepancy['rms_over_sigma']:.2f} sigma over those draws (at the truth's scale), the error at the "
-            f"truth {discrepancy['error_at_truth_rms_over_sigma']:.2f} sigma.\n\n" + "\n".join(rows))
+            f"truth {discrepancy['error_at_truth_rms_over_sigma']:.2f} sigma.\n\n" + rows)
 
 
 if __name__ == "__main__":
