@@ -47,7 +47,7 @@ NAMES = ("K", "G", "delta", "sigma")
 SCENES = {"demo": (2.0, 1.0), "5k": (0.4, 0.2), "40k": (1 / 7, 0.1)}  # (h, h_data) in mm
 PCG_ABOVE = 2000  # particles
 ESS_TARGET = 400
-TIME_TARGET = {"demo": 120.0, "5k": 120.0, "40k": 600.0}
+TIME_TARGET = {"5k": 120.0, "40k": 600.0}  # the issue's; the demo scene is there to compare with full NUTS
 SNAPSHOTS = {"demo": 60, "5k": 30, "40k": 30}  # the demo's 188 particles: solves cost ms, rank ~20
 
 
@@ -212,14 +212,15 @@ def targets_of(name: str, result: dict) -> dict:
     worst_mean = max(v["mean_shift_in_sd"] for v in bias.values())
     worst_sd = max(abs(v["sd_ratio"] - 1) for v in bias.values())
     bound = 0.01 * result["noise_sd"]
-    t = {f"{name}_time_to_ess_400_s": (rn["time_to_ess_400_s"], TIME_TARGET[name], rn["time_to_ess_400_s"] <= TIME_TARGET[name]),
-         f"{name}_ess_min": (rn["ess_min"], ESS_TARGET, rn["ess_min"] >= ESS_TARGET),
-         f"{name}_mean_error_in_reference_sd_max": (worst_mean, 0.1, worst_mean <= 0.1),
+    t = {f"{name}_mean_error_in_reference_sd_max": (worst_mean, 0.1, worst_mean <= 0.1),
          f"{name}_sd_relative_error_max": (worst_sd, 0.1, worst_sd <= 0.1),
          f"{name}_correction_s": (corr["correction_s"], 60.0, corr["correction_s"] <= 60.0),
          f"{name}_correction_pareto_k": (corr["pareto_k"], 0.7, corr["pareto_k"] <= 0.7),
          f"{name}_reduced_error_estimate_max": (rn["reduced_error_estimate_max"], bound, rn["reduced_error_estimate_max"] <= bound),
          f"{name}_reduced_error_true_max": (result["reduced_error_true_max"], bound, result["reduced_error_true_max"] <= bound)}
+    if name in TIME_TARGET:
+        t[f"{name}_time_to_ess_400_s"] = (rn["time_to_ess_400_s"], TIME_TARGET[name], rn["time_to_ess_400_s"] <= TIME_TARGET[name])
+        t[f"{name}_ess_min"] = (rn["ess_min"], ESS_TARGET, rn["ess_min"] >= ESS_TARGET)
     return {k: {"value": v, "target": tgt, "passed": bool(ok)} for k, (v, tgt, ok) in t.items()}
 
 
