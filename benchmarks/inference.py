@@ -20,7 +20,10 @@ default (``--nuts-on demo 5k`` runs it; ``--nuts-on`` alone runs none): its time
 extrapolated from the demo's gradients per effective draw.
 
     python benchmarks/inference.py [--scenes demo 5k] [--repeat 10] [--draws 300 --warmup 200 --chains 2]
-                                   [--rule linear|smooth] [--nuts-on demo 5k]
+                                   [--rule linear|smooth] [--nuts-on demo 5k] [--reduced SNAPSHOTS]
+
+With ``--reduced 30`` every scene is replaced by its reduced model (``bp.ReducedScene``): the
+gradients then cost an r x r solve (experiments/reduced_likelihood.py measures the whole path).
 """
 from __future__ import annotations
 
@@ -39,6 +42,7 @@ import arviz as az  # noqa: E402
 import pyro.distributions as dist  # noqa: E402
 from pyro.infer.autoguide.initialization import init_to_value  # noqa: E402
 
+import bayespd as bp  # noqa: E402
 from bayespd.linalg import sparse  # noqa: E402
 from bayespd.infer import fit, to_inference_data  # noqa: E402
 from bayespd.infer.space import Unconstrained  # noqa: E402
@@ -68,13 +72,25 @@ def at_truth(scene, sigma):
             "delta": min(demo.TRUTH["delta"], 0.8 * scene.material.bonds.delta_max), "sigma": sigma}
 
 
+def reduced(scene, y, sigma, snapshots: int):
+    """The scene's reduced model (``bp.ReducedScene``) from ``snapshots`` prior draws, to 1 % of
+    the noise sd; needs ``rule="smooth"`` bonds to be worth it."""
+    priors = elastic_plate(scene, demo.NOMINAL, noise_scale=0.05 * float(y.abs().max())).priors
+    draws = bp.prior_draws(priors, snapshots, 0, names=["K", "G", "delta"])
+    start = time.perf_counter()
+    rom = bp.ReducedScene(scene, draws, 0.01 * sigma)
+    print(f"reduced model: rank {rom.rank}, {rom.report['delta_pieces']} pieces in delta, built in "
+          f"{time.perf_counter() - start:.1f} s from {snapshots} full solves", flush=True)
+    return rom
+
+
 def gradient_rates(scene, y, sigma, repeat):
     """(bare seconds, pyro seconds) per gradient evaluation, best of ``repeat``."""
     point = at_truth(scene, sigma)
     leaves = {k: torch.tensor(v, requires_grad=True) for k, v in point.items()}
 
     def bare():
-        u = scene.observe(scene.solve({k: leaves[k] for k in ("K", "G", "delta")}))
+        u = scene.predict({k: leaves[k] for k in ("K", "G", "delta")})
         lp = dist.Normal(u, leaves["sigma"]).log_prob(y).sum()
         torch.autograd.grad(lp, list(leaves.values()))
 
@@ -120,6 +136,9 @@ def main():
     parser.add_argument("--fixed-mass", action="store_true",
                         help="keep the Laplace mass matrix through warmup (fit's adapt_mass=False)")
     parser.add_argument("--target-accept", type=float, default=0.8)
+    parser.add_argument("--reduced", type=int, default=0, metavar="SNAPSHOTS",
+                        help="time the scenes' reduced models (bp.ReducedScene from this many full solves) "
+                             "instead of the full ones; use with --rule smooth")
     parser.add_argument("--rule", default="linear", choices=["linear", "smooth"],
                         help="partial-volume ramp in delta of the model (bayespd.bonds.partial_volume)")
     args = parser.parse_args()
@@ -128,8 +147,11 @@ def main():
     nuts = None
     for name in args.scenes:
         scene, y, sigma = demo_problem(args.rule) if name == "demo" else fine_problem(rule=args.rule)
+        if args.reduced:
+            scene = reduced(scene, y, sigma, args.reduced)
         t_bare, t_pyro, model = gradient_rates(scene, y, sigma, args.repeat)
-        print(f"{name}: {scene.particles.n} particles, {len(y)} points, {scene.material.bonds.n} bonds; "
+        print(f"{name}{' (reduced)' if args.reduced else ''}: {scene.particles.n} particles, {len(y)} points, "
+              f"{scene.material.bonds.n} bonds; "
               f"gradient: bare {1e3 * t_bare:.1f} ms ({1 / t_bare:.0f}/s), in Pyro {1e3 * t_pyro:.1f} ms "
               f"({1 / t_pyro:.0f}/s); Pyro overhead {100 * (1 - t_bare / t_pyro):.0f} % of each gradient", flush=True)
         if name in args.nuts_on:
