@@ -90,7 +90,8 @@ class ReducedScene:
         snapshot_s = time.perf_counter() - t0
         V, singular = pod(full[:, :-validation], 0.0)  # every direction; the rank is chosen below
         t0 = time.perf_counter()
-        self._full = self._operators(V, low, high, max_pieces)
+        thetas = np.stack([(coefficients(self.material, d) / self.theta_ref).numpy() for d in draws])
+        self._full = self._operators(V, low, high, max_pieces, thetas)
         operators_s = time.perf_counter() - t0
         held = draws[-validation:]
         observed = self._observed(full[:, -validation:])
@@ -111,12 +112,12 @@ class ReducedScene:
         obs0 = self.scene.observe(c.expand(torch.zeros(len(c.free_dofs), dtype=torch.float64))).reshape(-1)
         return torch.sparse.mm(self.scene.observation_matrix(), torch.as_tensor(u_free)).numpy().T + obs0.numpy()
 
-    def _operators(self, V, low, high, max_pieces) -> tuple:
+    def _operators(self, V, low, high, max_pieces, thetas) -> tuple:
         """(V, H V, the prescribed dofs' observations, V^T f, blocks(delta), loads(delta))."""
         obs0 = self._observed(np.zeros((V.shape[0], 1)))[0]
         HV = (self._observed(V) - obs0).T
         self._reuse = {}  # B_t V of the terms whose entries do not depend on delta
-        blocks, loads = self._delta_pieces(V, HV, low, high, max_pieces)
+        blocks, loads = self._delta_pieces(V, HV, low, high, max_pieces, thetas)
         del self._reuse
         f = V.T @ self.scene.constraints.free(self.scene.force).numpy()
         return V, torch.as_tensor(HV), torch.as_tensor(obs0), torch.as_tensor(f), blocks, loads
@@ -158,16 +159,17 @@ class ReducedScene:
         return Terms(self.material, {**self.reference, "delta": delta}).project(
             V_all, c.prescribed.reshape(-1).numpy(), self._reuse)
 
-    def _delta_pieces(self, V, HV, low, high, max_pieces):
+    def _delta_pieces(self, V, HV, low, high, max_pieces, thetas):
         """Polynomials in delta on the pieces between the partial volumes' breakpoints, each
-        halved until, at its check points, the reduced solution at the reference moduli from
-        the interpolated operators matches the exactly projected one's observations to
-        tolerance / 4. Returns (blocks, loads) as ``Piecewise``."""
+        halved until, at its check points, the reduced solutions at the draws' moduli
+        (``thetas``: Theta_t / Theta_t(reference) per draw) from the interpolated operators
+        match the exactly projected ones' observations to tolerance / 4 (each term's
+        interpolation error is scaled by its coefficient, and the ratios spread widely over a
+        prior). Returns (blocks, loads) as ``Piecewise``."""
         f = V.T @ self.scene.constraints.free(self.scene.force).numpy()
-        theta = np.ones(len(self.theta_ref))  # Theta_t / Theta_t(reference) at the reference
 
         def observed(S, p):
-            return HV @ np.linalg.solve(np.tensordot(theta, S, 1), f + theta @ p)
+            return np.stack([HV @ np.linalg.solve(np.tensordot(theta, S, 1), f + theta @ p) for theta in thetas])
 
         b = breakpoints(self.material.bonds, low, high)
         todo, done, n = list(zip(b[:-1], b[1:])), [], 6
