@@ -43,7 +43,7 @@ from bayespd.infer import UnreliableCorrectionError, corrected_summary, fit, imp
 from bayespd.models.elastic_plate import elastic_plate
 from bayespd.observe import locate
 
-NAMES = ("K", "G", "delta", "sigma")
+NAMES = demo.NAMES
 SCENES = {"demo": (2.0, 1.0), "5k": (0.4, 0.2), "40k": (1 / 7, 0.1)}  # (h, h_data) in mm
 PCG_ABOVE = 2000  # particles
 ESS_TARGET = 400
@@ -72,15 +72,6 @@ def iterative(scene):
     if scene.particles.n <= PCG_ABOVE:
         return scene
     return bp.Scene(scene.material, scene.dirichlet, scene.loads, scene.observation, solver="pcg")
-
-
-def moments(tree) -> dict:
-    post = tree["posterior"]
-    out = {}
-    for k in NAMES:
-        x = post[k].values.reshape(-1)
-        out[k] = {"mean": float(x.mean()), "sd": float(x.std()), "interval_90": np.quantile(x, [0.05, 0.95]).tolist()}
-    return out
 
 
 def corrected_moments(tree) -> dict | None:
@@ -145,7 +136,7 @@ def run_scene(name: str, args) -> dict:
     sampling = float(tree.attrs["wall_time_s"])
     out["methods"]["reduced_nuts"] = {
         "wall_time_s": build_s + nuts_s, "build_s": build_s, "sampling_s": sampling, "fit_call_s": nuts_s,
-        "ess_bulk": e, "ess_min": min(e.values()), "moments": moments(tree),
+        "ess_bulk": e, "ess_min": min(e.values()), "moments": demo.posterior_report(tree, truth),
         "divergences": int(tree["sample_stats"]["diverging"].sum()),
         "time_to_ess_400_s": build_s + nuts_s * max(1.0, ESS_TARGET / min(e.values())),
         "reduced_error_estimate_max": float(np.nanmax(estimate)), "reduced_error_estimate_mean": float(np.nanmean(estimate)),
@@ -165,17 +156,17 @@ def run_scene(name: str, args) -> dict:
     if scene.particles.n <= args.full_laplace_below:
         t0 = time.perf_counter()
         laplace = fit(full_model, data, "laplace", num_samples=200, seed=args.seed, progress=False)  # replayed: a full solve each
-        out["methods"]["full_laplace"] = {"wall_time_s": time.perf_counter() - t0, "moments": moments(laplace)}
+        out["methods"]["full_laplace"] = {"wall_time_s": time.perf_counter() - t0, "moments": demo.posterior_report(laplace, truth)}
     t0 = time.perf_counter()
     svi = fit(reduced_model, data, "svi", svi_steps=args.svi_steps, num_samples=2000, seed=args.seed, init="map",
               progress=False)
-    out["methods"]["reduced_svi"] = {"wall_time_s": build_s + time.perf_counter() - t0, "moments": moments(svi)}
+    out["methods"]["reduced_svi"] = {"wall_time_s": build_s + time.perf_counter() - t0, "moments": demo.posterior_report(svi, truth)}
 
     if name == "demo":
         t0 = time.perf_counter()
         full = fit(full_model, data, "nuts", **nuts)
         out["methods"]["full_nuts"] = {"wall_time_s": time.perf_counter() - t0, "ess_bulk": ess(full),
-                                       "moments": moments(full)}
+                                       "moments": demo.posterior_report(full, truth)}
         reference, how = out["methods"]["full_nuts"]["moments"], "full-model NUTS"
     else:
         t0 = time.perf_counter()

@@ -116,10 +116,8 @@ class ReducedScene:
         """(V, H V, the prescribed dofs' observations, V^T f, blocks(delta), loads(delta))."""
         obs0 = self._observed(np.zeros((V.shape[0], 1)))[0]
         HV = (self._observed(V) - obs0).T
-        self._reuse = {}  # B_t V of the terms whose entries do not depend on delta
-        blocks, loads = self._delta_pieces(V, HV, low, high, max_pieces, thetas)
-        del self._reuse
         f = V.T @ self.scene.constraints.free(self.scene.force).numpy()
+        blocks, loads = self._delta_pieces(V, HV, f, low, high, max_pieces, thetas)
         return V, torch.as_tensor(HV), torch.as_tensor(obs0), torch.as_tensor(f), blocks, loads
 
     def _choose_rank(self, held: list[dict], observed: np.ndarray) -> list[float]:
@@ -151,22 +149,30 @@ class ReducedScene:
         with torch.no_grad():
             return self.scene.factor(params).solve(self.scene.free_load(params).numpy())
 
-    def _projected(self, V, delta: float):
-        """(V^T A_t V) (T, R, R) and V^T (-A_t u_c) (T, R) at ``delta``, reference moduli."""
+    def _projector(self, V):
+        """delta -> (V^T A_t V) (T, R, R) and V^T (-A_t u_c) (T, R) at the reference moduli,
+        each delta projected once (neighbouring pieces share their ends), B_t V reused where
+        B_t's entries do not depend on delta."""
         c = self.scene.constraints
         V_all = np.zeros((c.prescribed.numel(), V.shape[1]))
         V_all[c.free_dofs] = V
-        return Terms(self.material, {**self.reference, "delta": delta}).project(
-            V_all, c.prescribed.reshape(-1).numpy(), self._reuse)
+        u_c, reuse, done = c.prescribed.reshape(-1).numpy(), {}, {}
 
-    def _delta_pieces(self, V, HV, low, high, max_pieces, thetas):
+        def projected(delta: float):
+            if delta not in done:
+                terms = Terms(self.material, {**self.reference, "delta": delta})
+                done[delta] = terms.project(V_all, u_c, reuse)
+            return done[delta]
+        return projected
+
+    def _delta_pieces(self, V, HV, f, low, high, max_pieces, thetas):
         """Polynomials in delta on the pieces between the partial volumes' breakpoints, each
         halved until, at its check points, the reduced solutions at the draws' moduli
         (``thetas``: Theta_t / Theta_t(reference) per draw) from the interpolated operators
         match the exactly projected ones' observations to tolerance / 4 (each term's
         interpolation error is scaled by its coefficient, and the ratios spread widely over a
         prior). Returns (blocks, loads) as ``Piecewise``."""
-        f = V.T @ self.scene.constraints.free(self.scene.force).numpy()
+        projected = self._projector(V)
 
         def observed(S, p):
             return np.stack([HV @ np.linalg.solve(np.tensordot(theta, S, 1), f + theta @ p) for theta in thetas])
@@ -175,9 +181,10 @@ class ReducedScene:
         todo, done, n = list(zip(b[:-1], b[1:])), [], 6
         while todo:
             a, b = todo.pop()
-            exact = [self._projected(V, x) for x in a + (b - a) * chebyshev_points(n)]
+            nodes = [a, *(a + (b - a) * chebyshev_points(n)[1:-1]), b]  # ends exact: shared
+            exact = [projected(float(x)) for x in nodes]
             piece = [Piecewise([a, b], [np.stack([e[k] for e in exact])]) for k in (0, 1)]
-            worst = max(float(np.abs(observed(*self._projected(V, x))
+            worst = max(float(np.abs(observed(*projected(float(x)))
                                          - observed(piece[0](x).numpy(), piece[1](x).numpy())).max())
                         for x in a + (b - a) * check_points(n))
             if worst <= self.tolerance / 4:
