@@ -22,8 +22,8 @@ from bayespd.nonlinear import NonlinearBonds  # noqa: E402
 from bayespd.problem import Scene  # noqa: E402
 from bayespd.linalg.adjoint import solve  # noqa: E402
 from bayespd.linalg.sparse import ConvergenceError, NotPositiveDefiniteError  # noqa: E402
-from bayespd.reduced import (Discrepancy, ReducedScene, estimate_discrepancy, gaussian_draws,  # noqa: E402
-                             posterior_draws, prior_draws)
+from bayespd.reduced import (Discrepancy, ElasticFeatures, LogFeatures, ReducedScene,  # noqa: E402
+                             estimate_discrepancy, gaussian_draws, posterior_draws, prior_draws)
 
 __all__ = [
     "Particles", "grid_2d", "grid_3d", "from_points", "from_mesh", "Bonds", "find_bonds", "check_horizon",
@@ -33,5 +33,6 @@ __all__ = [
     "Constraints", "Dirichlet", "Load", "NonlinearBonds", "GMRF", "Observation", "OpeningObservation", "ParticleObservation", "GridObservation", "grid_points",
     "edge_mask", "finite_mask", "model_data", "read_dice", "frame_data", "write_vtu", "write_pvd",
     "VTKSeries", "Scene", "NotPositiveDefiniteError", "ConvergenceError", "solve",
-    "ReducedScene", "Discrepancy", "estimate_discrepancy", "prior_draws", "posterior_draws", "gaussian_draws",
+    "ReducedScene", "Discrepancy", "estimate_discrepancy", "prior_draws", "posterior_draws", "gaussian_draws", "LogFeatures",
+    "ElasticFeatures",
 ]

@@ -12,6 +12,7 @@ figures) and prints the tables.
 """
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -94,6 +95,20 @@ def discrepancy_term(fine: bp.Scene, coarse: bp.Scene, first, seed: int, num: in
     term = bp.estimate_discrepancy(lambda p: observed(fine, p), lambda p: observed(coarse, p), draws,
                                    points=coarse.observation.points, **DISCREPANCY)
     return term, time.perf_counter() - start
+
+
+def ratio_design(num: int, seed: int, log_ratio: tuple, delta: tuple) -> list[dict]:
+    """``num`` scrambled Sobol points for an approximation-error term in bp.ElasticFeatures:
+    log(G / K) over the 0.5-99.5 % quantiles of N(mean, sd) (``log_ratio`` = (mean, sd)), delta
+    uniform over ``delta`` = (low, high), K at its nominal value (the relative error does not
+    depend on it)."""
+    from scipy.stats import norm, qmc
+
+    u = qmc.Sobol(2, scramble=True, seed=seed).random(num)
+    ratio = norm.ppf(0.005 + 0.99 * u[:, 0], *log_ratio)
+    K = NOMINAL["K"]
+    return [{"K": torch.tensor(K), "G": torch.tensor(K * math.exp(r)), "delta": torch.tensor(d)}
+            for r, d in zip(ratio, delta[0] + (delta[1] - delta[0]) * u[:, 1])]
 
 
 def interval_row(truth, draws):

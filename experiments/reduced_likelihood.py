@@ -12,7 +12,11 @@ particles right of the clamp. Methods, each timed:
 * ``+ correction``: PSIS importance reweighting by the full model at ``--correction`` thinned
   draws (``importance_correction``);
 * ``Laplace`` of the full model; ``SVI`` (full-rank Gaussian) of the reduced model;
-* ``full NUTS`` where affordable (the demo scene).
+* ``full NUTS`` where affordable (the demo scene);
+* ``with the term`` (demo and 5k): the approximation-error term of the reduced model against a
+  plate at h_data (``TERM_DRAWS`` fine solves on a Sobol design, smooth in (log(G / K), delta);
+  its one-off estimate timed, fine scene build included), then reduced NUTS with it: judged by
+  whether its 90 % intervals cover the truth (the others target the coarse model's posterior).
 
 The reference posterior is full-model NUTS on the demo scene, and elsewhere the importance
 reweighting of the reduced posterior by the full model at ``--reference`` draws (k and ESS
@@ -28,6 +32,7 @@ error_vs_time.png (runs/reduced_likelihood_<scenes>/ for other scenes than the d
 from __future__ import annotations
 
 import argparse
+import math
 import time
 
 import arviz as az
@@ -49,6 +54,12 @@ PCG_ABOVE = 2000  # particles
 ESS_TARGET = 400
 TIME_TARGET = {"5k": 120.0, "40k": 600.0}  # the issue's; the demo scene is there to compare with full NUTS
 SNAPSHOTS = {"demo": 100, "5k": 30, "40k": 30}  # the demo: solves cost ms; delta near h needs many
+# The approximation-error term against a plate at h_data (the data's spacing) over the prior's
+# delta range: a smooth trend in bp.ElasticFeatures from a Sobol design (demo.ratio_design), once
+# per scene. Fine solves: 0.3 s (demo), ~3.5 s (5k, 19k particles, PCG); at 40k the reference
+# (h = 1/14 mm, ~150k particles) is out of reach on this host, so no term there.
+TERM_DRAWS = {"demo": 128, "5k": 16}
+TERM_TARGET_S = 60.0  # the issue's for the 5k scene's one-off estimate
 
 
 def problem(h: float, h_data: float, seed: int):
@@ -107,6 +118,35 @@ def true_errors(reduced, scene, tree, n: int) -> list[float]:
     return out
 
 
+def with_term(name, scene, reduced, data, nuts, noise_scale, truth, seed) -> dict:
+    """The error term of the reduced model against the plate at h_data (its fine scene built,
+    TERM_DRAWS fine solves; all timed) and reduced NUTS with it. Its posterior is another (the
+    fine plate's, approximately), so it is judged against the truth, not the reference."""
+    h, h_data = SCENES[name]
+    t0 = time.perf_counter()
+    fine = iterative(demo.plate(h_data, 3 * h, scene.observation.points, "smooth"))
+    log_ratio = (math.log(demo.NOMINAL["G"] / demo.NOMINAL["K"]), 0.5 * math.sqrt(2))  # its prior
+    draws = demo.ratio_design(TERM_DRAWS[name], seed, log_ratio, (h, 3 * h))
+    with torch.no_grad():
+        term = bp.estimate_discrepancy(fine.predict, reduced.predict, draws, dependence="smooth",
+                                       features=bp.ElasticFeatures(), relative=True, explained=0.9999,
+                                       points=scene.observation.points)
+    term_s = time.perf_counter() - t0
+    loo = math.sqrt(float(term.covariance().trace()) / term.mean.numel())
+    print(f"  error term: {len(draws)} fine solves ({fine.particles.n} particles) in {term_s:.1f} s, "
+          f"relative rms {term.rms:.3g}, leave-one-out {loo:.3g}", flush=True)
+    t0 = time.perf_counter()
+    tree = fit(elastic_plate(reduced, demo.NOMINAL, noise_scale, discrepancy=term), data, "nuts", **nuts)
+    fit_s = time.perf_counter() - t0
+    e = ess(tree)
+    moments = demo.posterior_report(tree, truth)
+    print(f"  reduced NUTS with the term: {fit_s:.1f} s, ESS { {k: round(v) for k, v in e.items()} }, covers "
+          f"{ {k: moments[k]['covers_truth'] for k in NAMES} }", flush=True)
+    return {"draws": len(draws), "fine_particles": fine.particles.n, "estimate_s": term_s, "rank": term.rank,
+            "rms_relative": term.rms, "leave_one_out_rms_relative": loo, "design": "Sobol, prior ranges",
+            "nuts": {"fit_call_s": fit_s, "ess_bulk": e, "moments": moments}}
+
+
 def run_scene(name: str, args) -> dict:
     h, h_data = SCENES[name]
     t0 = time.perf_counter()
@@ -152,6 +192,9 @@ def run_scene(name: str, args) -> dict:
         "wall_time_s": build_s + nuts_s + correction_s, "correction_s": correction_s, "pareto_k": k,
         "ess": float(corrected["importance"].attrs["ess"]), "moments": corrected_moments(corrected)}
     print(f"  correction: {args.correction} full solves in {correction_s:.1f} s, k = {k:.2f}", flush=True)
+
+    if name in TERM_DRAWS:
+        out["error_model"] = with_term(name, scene, reduced, data, nuts, noise_scale, truth, args.seed)
 
     if scene.particles.n <= args.full_laplace_below:
         t0 = time.perf_counter()
@@ -208,6 +251,11 @@ def targets_of(name: str, result: dict) -> dict:
          f"{name}_correction_pareto_k": (corr["pareto_k"], 0.7, corr["pareto_k"] <= 0.7),
          f"{name}_reduced_error_estimate_max": (rn["reduced_error_estimate_max"], bound, rn["reduced_error_estimate_max"] <= bound),
          f"{name}_reduced_error_true_max": (result["reduced_error_true_max"], bound, result["reduced_error_true_max"] <= bound)}
+    if "error_model" in result:
+        spent = result["error_model"]["estimate_s"]
+        t[f"{name}_error_term_estimate_s"] = (spent, TERM_TARGET_S, spent <= TERM_TARGET_S)
+        covers = all(v["covers_truth"] for v in result["error_model"]["nuts"]["moments"].values())
+        t[f"{name}_with_term_intervals_cover_truth"] = (covers, True, covers)
     if name in TIME_TARGET:
         t[f"{name}_time_to_ess_400_s"] = (rn["time_to_ess_400_s"], TIME_TARGET[name], rn["time_to_ess_400_s"] <= TIME_TARGET[name])
         t[f"{name}_ess_min"] = (rn["ess_min"], ESS_TARGET, rn["ess_min"] >= ESS_TARGET)

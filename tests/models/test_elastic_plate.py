@@ -9,8 +9,8 @@ from pyro import poutine
 from pyro.poutine.util import site_is_subsample
 
 import bayespd as bp
-
 from bayespd.models.elastic_plate import ElasticPlate, default_priors, elastic_plate
+from bayespd.reduced.trend import LinearTrend
 from tests.conftest import plate_scene
 
 NOMINAL = {"K": 3000.0, "G": 1400.0}
@@ -79,13 +79,12 @@ def term_for(scene, seed=0, slope=True, relative=False):
     g = torch.Generator().manual_seed(seed)
     points = scene.observation.points
     n = points.shape[0] * scene.particles.dim
-    return bp.Discrepancy(
-        mean=1e-3 * torch.randn(points.shape[0], scene.particles.dim, generator=g),
-        factor=3e-3 * torch.randn(n, 3, generator=g), diag=1e-5 * torch.rand(n, generator=g) + 1e-6,
-        rms=1e-3, explained=0.9, num_draws=40,
-        slope=1e-3 * torch.randn(n, 3, generator=g) if slope else None, names=("K", "G", "delta") if slope else (),
-        centre=torch.tensor([8.0, 7.2, 0.8]) if slope else None, points=torch.as_tensor(points).clone(),
-        relative=relative)
+    mean = 1e-3 * torch.randn(points.shape[0], scene.particles.dim, generator=g)
+    factor, diag = 3e-3 * torch.randn(n, 3, generator=g), 1e-5 * torch.rand(n, generator=g) + 1e-6
+    trend = LinearTrend(bp.LogFeatures(("K", "G", "delta")), mean.reshape(-1), 1e-3 * torch.randn(n, 3, generator=g),
+                        torch.tensor([8.0, 7.2, 0.8]))
+    return bp.Discrepancy(mean=mean, factor=factor, diag=diag, rms=1e-3, explained=0.9, num_draws=40,
+                          trend=trend if slope else None, points=torch.as_tensor(points).clone(), relative=relative)
 
 
 @pytest.mark.parametrize("relative", [False, True])
@@ -101,7 +100,7 @@ def test_discrepancy_likelihood_is_the_dense_gaussian(scene, relative):
         mean = scene.observe(scene.solve(params))
     phi = torch.log(torch.stack([AT["K"], AT["G"], AT["delta"]]))
     s = float(mean.square().mean().sqrt()) if relative else 1.0
-    loc = mean.reshape(-1) + s * (term.mean.reshape(-1) + term.slope @ (phi - term.centre))
+    loc = mean.reshape(-1) + s * (term.mean.reshape(-1) + term.trend.slope @ (phi - term.trend.centre))
     cov = s**2 * term.covariance() + AT["sigma"] ** 2 * torch.eye(loc.shape[0])
     y = (loc + torch.linalg.cholesky(cov) @ torch.randn(loc.shape[0], generator=torch.Generator().manual_seed(1))
          ).reshape(mean.shape)
