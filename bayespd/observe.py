@@ -18,6 +18,7 @@ import torch
 from scipy.spatial import Delaunay, cKDTree
 
 from bayespd.discretize import Particles
+from bayespd.validate import finite
 
 
 def locate(particles: Particles, points: np.ndarray):
@@ -48,9 +49,9 @@ def _points(particles: Particles, points) -> np.ndarray:
     points = np.atleast_2d(np.asarray(points, dtype=float))
     if points.ndim != 2 or points.shape[1] != particles.dim:
         raise ValueError(f"points must be (n, {particles.dim}), got shape {points.shape}")
-    if not np.all(np.isfinite(points)):
-        raise ValueError("observation points contain NaN or inf: drop them before building the operator")
-    return points
+    if len(points) == 0:
+        raise ValueError("the observation has no points: give at least one (n, dim) point")
+    return finite("the observation points", points, "drop them before building the operator")
 
 
 class LinearObservation:
@@ -175,6 +176,10 @@ class GridObservation(LinearObservation):
         index = lattice.lookup(base[:, None, :] + corners)
         weights = np.prod(np.where(corners, t[:, None, :], 1 - t[:, None, :]), axis=-1)
         valid = np.all((index >= 0) | (weights == 0), axis=1)
+        if not valid.any():
+            raise ValueError(f"none of the {len(points)} points can be interpolated from the particles "
+                             "(each is outside the body or next to a hole or edge): check their units "
+                             "and origin, or use bp.Observation")
         weights[~valid] = 0.0
         index[index < 0] = 0  # with weight 0
         super().__init__(points, index, weights, np.repeat(valid[:, None], particles.dim, axis=1))

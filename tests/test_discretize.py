@@ -71,7 +71,7 @@ def test_from_points_keeps_positions_volumes_and_the_given_spacing():
 
 
 @pytest.mark.parametrize("x, volume, match", [
-    ([[0.0, 0.0], [1.0, 0.0], [0.0, 0.0]], [1.0, 1.0, 1.0], "coincide.*remove duplicate"),
+    ([[0.0, 0.0], [1.0, 0.0], [0.0, 0.0]], [1.0, 1.0, 1.0], "closer than 1e-6 h.*remove duplicate"),
     ([[0.0, 0.0], [1.0, 0.0]], [1.0, 0.0], "zero or negative volume"),
     ([[0.0, 0.0], [1.0, 0.0]], [1.0, -2.0], "zero or negative volume"),
     ([[0.0, np.nan], [1.0, 0.0]], [1.0, 1.0], "NaN or inf"),

@@ -27,7 +27,7 @@ import pyro
 import torch
 from pyro.infer.autoguide.initialization import init_to_median, init_to_value
 
-from .checks import check_data, check_observed_shape, check_priors, trace_priors
+from .checks import as_tensors, check_continuous, check_data, check_observed_shape, check_priors, trace_priors
 from .datatree import build_tree
 from .laplace import Laplace
 from .method import Method
@@ -87,9 +87,9 @@ def fit(model, data: dict, method="nuts", **settings):
     ``TypeError`` naming its settings. Settings: ``Method`` (shared), ``NUTS``, ``HMC``, ``SVI``,
     ``Laplace``.
 
-    Input is checked first (``bayespd.infer.checks``): NaN data outside (or under)
-    ``data["mask"]``, observations of the wrong shape, and, given ``scene``, priors whose
-    support leaves the physical range. The seed fixes the start (``init_to_median`` draws from
+    Input is checked first (``bayespd.infer.checks``; numpy arrays in ``data`` become
+    tensors): NaN data outside (or under) ``data["mask"]``, observations of the wrong shape,
+    discrete priors, and, given ``scene``, priors whose support leaves the physical range. The seed fixes the start (``init_to_median`` draws from
     the prior). Every method then replays the model per draw: ``log_likelihood`` (pointwise,
     mask and scale applied, masked entries 0: ``az.loo`` works), ``posterior_predictive`` and
     ``pyro.deterministic`` sites (added to ``posterior``). ``observed_data``; ``constant_data``:
@@ -102,11 +102,13 @@ def fit(model, data: dict, method="nuts", **settings):
     ``mode_weights`` (when searched), ``created_at``, library versions.
     """
     s = settings_of(method, settings)
+    data = as_tensors(data)
     check_data(data, s.observed)
     pyro.set_rng_seed(s.seed)  # init_to_median draws from the prior: the seed fixes the start too
     init = _initial(s.init_values)
     trace = init_trace(model, data, init)
     check_observed_shape(trace, data, s.observed, s.scene)
+    check_continuous(trace_priors(trace))
     if s.scene is not None:
         check_priors(trace_priors(trace), s.scene)
 
