@@ -159,3 +159,14 @@ def test_opening_is_the_difference_of_the_two_faces(small_scene):
     assert obs.mask[:, 1].all() and not obs.mask[:, 0].any()
     with pytest.raises(ValueError, match="matching"):
         bp.OpeningObservation(p, above, below[:1])
+
+
+def test_an_observation_of_no_points_is_refused():
+    p = bp.grid_2d(4.0, 3.0, 1.0)
+    for make in (bp.Observation, GridObservation):
+        with pytest.raises(ValueError, match="the observation has no points"):
+            make(p, np.zeros((0, 2)))
+    with pytest.raises(ValueError, match="none of the 2 points can be interpolated.*units and origin"):
+        GridObservation(p, [[40.0, 30.0], [-5.0, 1.0]])
+    one = GridObservation(p, [[1.5, 1.5]])  # one point suffices
+    np.testing.assert_allclose(one(torch.as_tensor(p.x)), [[1.5, 1.5]], rtol=1e-12)

@@ -25,7 +25,7 @@ def check_continuous(priors: dict) -> None:
     """Every latent site (``{name: distribution}``) is continuous: the samplers and optimisers
     move on a continuous space."""
     for name, prior in priors.items():
-        if prior.support.is_discrete:
+        if getattr(getattr(prior, "support", None), "is_discrete", False):  # a plate's subsample has none
             raise ValueError(f"{name} has a discrete prior ({type(prior).__name__}): NUTS, HMC, SVI and "
                              "Laplace need continuous latent variables; give it a continuous prior "
                              "(e.g. LogNormal, or Uniform over its range) or enumerate it out")
