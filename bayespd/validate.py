@@ -79,12 +79,13 @@ def readable_file(path, what: str) -> Path:
 @contextlib.contextmanager
 def reading(path, what: str, fix: str = "check that it is complete and of the right kind"):
     """Turn an error the dependency reading ``path`` raises (wrap only its call) into a
-    ``ValueError`` that names the file; a missing file stays ``FileNotFoundError``."""
+    ``ValueError`` that names the file; a missing file stays ``FileNotFoundError``. A
+    ``SystemExit`` is caught too: meshio exits when it reads no format."""
     try:
         yield
     except FileNotFoundError:
         raise
-    except Exception as error:
+    except (Exception, SystemExit) as error:
         raise ValueError(f"cannot read {path} as {what} ({type(error).__name__}: {error}): {fix}") from error
 
 

@@ -92,21 +92,27 @@ def run_svi(model, data, guide, num_samples, seed, steps, lr, init, progress, ra
 
 
 def _step(svi, data, i: int, steps: int, lr: float) -> float:
-    """One SVI step's loss. After the first step, a non-finite loss or guide parameter, or the
-    model refusing a draw (``ParameterRangeError``: a modulus overflowed), is the optimiser
-    diverging: a ``ValueError`` naming ``svi_lr`` and the fix."""
+    """One SVI step's loss. After the first step, a non-finite loss or guide parameter, or an
+    invalid draw (the model's ``ParameterRangeError``: a modulus overflowed; torch refusing a
+    guide distribution's parameters), is the optimiser diverging: a ``ValueError`` naming
+    ``svi_lr`` and the fix."""
     try:
         loss = svi.step(**data)
     except (ValueError, RuntimeError) as error:
-        if i == 0 or (_params_finite() and not isinstance(error, ParameterRangeError)):
+        if i == 0 or not (_invalid_draw(error) or not _params_finite()):
             raise
-        raise _diverged(i, steps, lr, f"the model refused the guide's draw ({str(error).splitlines()[0]})") from error
+        raise _diverged(i, steps, lr, f"the guide gave an invalid draw ({str(error).splitlines()[0]})") from error
     if i == 0 and not math.isfinite(loss):
         raise ValueError(f"the first SVI loss is {loss}: the model's log density is not finite at the "
                          "initial values; check the priors, init_values and the data")
     if not (math.isfinite(loss) and _params_finite()):
         raise _diverged(i, steps, lr, "the ELBO or the guide's parameters became NaN or inf")
     return loss
+
+
+def _invalid_draw(error: Exception) -> bool:
+    """A model's parameter out of range, or a distribution's parameters refused by torch."""
+    return isinstance(error, ParameterRangeError) or str(error).startswith("Expected parameter")
 
 
 def _diverged(i: int, steps: int, lr: float, what: str) -> ValueError:
