@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from bayespd.validate import reading
+from bayespd.validate import finite, positive, reading
 
 REQUIRED = ("COORDINATE_X", "COORDINATE_Y", "DISPLACEMENT_X", "DISPLACEMENT_Y", "SIGMA", "STATUS_FLAG")
 SUCCESS = (0, 1, 2, 3, 4, 6, 18)  # DICe::Status_Flag values of a measured, successful subset
@@ -126,6 +126,8 @@ def frame_data(ds: xr.Dataset, frame: int, scale: float = 1.0, origin=(0.0, 0.0)
     and the y displacement). Pass y and mask (with any other mask, ``&``) to
     :func:`bayespd.observe.model_data`.
     """
+    positive("scale", scale, "pass the model units per pixel")
+    finite("origin", origin, "pass the model position of pixel (0, 0)")
     if frame not in ds["frame"].values:
         raise ValueError(f"no frame {frame}: the data set has frames {ds['frame'].values.tolist()}")
     one = ds.sel(frame=frame)

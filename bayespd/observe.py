@@ -18,7 +18,7 @@ import torch
 from scipy.spatial import Delaunay, cKDTree
 
 from bayespd.discretize import Particles
-from bayespd.validate import finite
+from bayespd.validate import finite, positive
 
 
 def locate(particles: Particles, points: np.ndarray):
@@ -189,10 +189,12 @@ def grid_points(origin, spacing, counts) -> np.ndarray:
     """A regular grid of points, as DIC software reports them: ``counts`` points per axis
     (x, y[, z]) from ``origin`` with ``spacing`` (scalar or per axis); x varies fastest, so
     ``values.reshape(*reversed(counts), -1)`` is an image of rows."""
-    origin, counts = np.asarray(origin, float), np.asarray(counts)
-    spacing = np.broadcast_to(np.asarray(spacing, float), origin.shape)
-    if counts.shape != origin.shape or np.any(counts < 1) or np.any(spacing <= 0):
-        raise ValueError("grid_points needs one count (>= 1) and a positive spacing per axis of origin")
+    origin = finite("origin", np.asarray(origin, float), "pass the position of the first point")
+    counts = np.asarray(counts)
+    spacing = positive("spacing", np.asarray(spacing, float), "pass a finite positive spacing per axis")
+    spacing = np.broadcast_to(spacing, origin.shape)
+    if counts.shape != origin.shape or np.any(counts < 1):
+        raise ValueError("grid_points needs one count (>= 1) per axis of origin")
     axes = [o + d * np.arange(c) for o, d, c in zip(origin, spacing, counts)]
     return np.stack(np.meshgrid(*axes, indexing="xy"), axis=-1).reshape(-1, len(origin))
 

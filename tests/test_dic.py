@@ -132,3 +132,13 @@ def test_a_file_without_final_newline_and_trailing_delimiters_is_read(tmp_path):
     path.write_text(",\n".join(path.read_text().splitlines()[7:]) + ",")
     ds = read_dice(path)
     assert ds.sizes["point"] == 4 and np.isfinite(ds["displacement"].values).all()
+
+
+@pytest.mark.parametrize("kw, match", [
+    ({"scale": 0.0}, "scale must be positive, got 0: pass the model units per pixel"),
+    ({"scale": float("nan")}, "scale contains NaN or inf"),
+    ({"origin": (0.0, float("inf"))}, r"origin contains NaN or inf \(1 of 2 entries"),
+])
+def test_frame_data_refuses_a_bad_scale_or_origin(run, kw, match):
+    with pytest.raises(ValueError, match=match):
+        frame_data(read_dice(str(run / "DICe_solution_*.txt")), 1, **kw)

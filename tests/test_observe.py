@@ -170,3 +170,11 @@ def test_an_observation_of_no_points_is_refused():
         GridObservation(p, [[40.0, 30.0], [-5.0, 1.0]])
     one = GridObservation(p, [[1.5, 1.5]])  # one point suffices
     np.testing.assert_allclose(one(torch.as_tensor(p.x)), [[1.5, 1.5]], rtol=1e-12)
+
+
+def test_grid_points_refuse_non_finite_origin_and_spacing():
+    with pytest.raises(ValueError, match="spacing contains NaN or inf"):
+        grid_points((0.0, 0.0), np.inf, (2, 2))
+    with pytest.raises(ValueError, match="origin contains NaN or inf"):
+        grid_points((np.nan, 0.0), 1.0, (2, 2))
+    np.testing.assert_allclose(grid_points((0.0, 0.0), 1e-300, (2, 1)), [[0.0, 0.0], [1e-300, 0.0]], rtol=0)

@@ -27,7 +27,10 @@ import pyro
 import torch
 from pyro.infer.autoguide.initialization import init_to_median, init_to_value
 
-from .checks import as_tensors, check_continuous, check_data, check_observed_shape, check_priors, trace_priors
+from bayespd.validate import finite
+
+from .checks import (as_tensors, check_continuous, check_data, check_observed_shape, check_priors,
+                     trace_priors)
 from .datatree import build_tree
 from .laplace import Laplace
 from .method import Method
@@ -73,7 +76,8 @@ def _initial(init_values):
     if not init_values:
         return init_to_median
     dtype = torch.get_default_dtype()
-    values = {k: torch.as_tensor(v, dtype=dtype) for k, v in init_values.items()}
+    values = {k: finite(f"init_values[{k!r}]", torch.as_tensor(v, dtype=dtype), "start from finite values")
+              for k, v in init_values.items()}
     return init_to_value(values=values, fallback=init_to_median)
 
 

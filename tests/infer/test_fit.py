@@ -359,6 +359,7 @@ def test_scene_layout_constant_data_and_loo(plate):
     ("svi", {"svi_lr": -0.1}, ValueError, "svi_lr must be positive, got -0.1: pass a learning rate"),
     ("svi", {"svi_lr": float("nan")}, ValueError, "svi_lr contains NaN or inf"),
     ("svi", {"guide": "diag"}, ValueError, r"guide must be one of \('normal'"),
+    ("svi", {"init_values": {"mu": float("nan")}}, ValueError, r"init_values\['mu'\] contains NaN or inf"),
 ])
 def test_bad_counts_and_rates_are_refused_before_sampling(y, method, settings, error, match):
     with pytest.raises(error, match=match):
