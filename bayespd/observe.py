@@ -18,7 +18,7 @@ import torch
 from scipy.spatial import Delaunay, cKDTree
 
 from bayespd.discretize import Particles
-from bayespd.validate import finite, positive
+from bayespd.validate import finite, in_range, positive
 
 
 def locate(particles: Particles, points: np.ndarray):
@@ -207,8 +207,7 @@ def edge_mask(particles: Particles, points, width: float) -> np.ndarray:
     grid), so holes and notches have edges too; points outside the body are dropped.
     """
     points = _points(particles, points)
-    if not width >= 0:
-        raise ValueError(f"width must be >= 0, got {width}")
+    in_range("width", width, 0.0, np.inf, "pass the band to drop along the edges, >= 0", closed=(True, False))
     lattice = _Lattice(particles)
     nearest = np.rint(lattice.coordinates(points)).astype(int)
     reach = int(np.ceil(width / lattice.h)) + 1  # farther empty cells are >= width away

@@ -178,3 +178,11 @@ def test_grid_points_refuse_non_finite_origin_and_spacing():
     with pytest.raises(ValueError, match="origin contains NaN or inf"):
         grid_points((np.nan, 0.0), 1.0, (2, 2))
     np.testing.assert_allclose(grid_points((0.0, 0.0), 1e-300, (2, 1)), [[0.0, 0.0], [1e-300, 0.0]], rtol=0)
+
+
+def test_edge_mask_refuses_a_negative_or_infinite_width():
+    p = bp.grid_2d(4.0, 3.0, 1.0)
+    with pytest.raises(ValueError, match=r"width must lie in \[0, inf\), got -1"):
+        edge_mask(p, p.x, -1.0)
+    with pytest.raises(ValueError, match="width contains NaN or inf"):
+        edge_mask(p, p.x, np.inf)
