@@ -24,9 +24,10 @@ relative to the displacement scale, which the moduli set), and the likelihood sc
 N(M + s mu, s^2 Gamma_eps + sigma^2 I).
 
 **Prior- or posterior-informed.** The draws theta_i may come from the prior (``prior_draws``:
-Kaipio & Somersalo's choice; cheap, estimated once for every data set, conservative: the term
-averages the error over the whole prior, so where eps varies strongly with theta its covariance
-is wide and the posterior with it too) or from a first posterior approximation of the data set
+Kaipio & Somersalo's choice; estimated once for every data set; with a constant or linear mean
+the term averages the error over the whole prior, so where eps varies strongly with theta its
+covariance is wide and the posterior with it too; a smooth trend removes that, at the price of
+dozens of draws per feature) or from a first posterior approximation of the data set
 at hand (``posterior_draws``: the posterior-informed / iterative approximation error of
 Lipponen, Seppanen & Kaipio 2013, J. Electron. Imaging 22 023008, and Calvetti,
 Dunlop, Somersalo & Stuart 2018, "Iterative updating of model error for Bayesian inversion",
