@@ -9,7 +9,7 @@ from pyro.infer.autoguide.initialization import init_to_median
 
 from . import laplace as _laplace
 from .laplace import NotPositiveDefiniteHessian
-from .mcmc import ChainSpec, run_chains
+from .mcmc import SETTINGS, ChainSpec, check_settings, run_chains
 from .method import Draws, Method
 from .mixture import allocate, cell_log_masses, cells, merged, mode_weights, stratified
 from .space import Unconstrained
@@ -54,6 +54,7 @@ class Sampler(Method):
 
     def __post_init__(self):
         super().__post_init__()
+        check_settings(**{k: getattr(self, k) for k in SETTINGS if hasattr(self, k)})
         if not self.adapt_mass and self.mass_matrix_from is None:
             raise ValueError("adapt_mass=False keeps a seeded mass matrix: give mass_matrix_from "
                              "('laplace' or a DataTree), or leave adaptation on")
