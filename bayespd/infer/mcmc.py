@@ -27,14 +27,14 @@ so far, their statistics, and the sampler state (position, adapted step size and
 matrix, torch / numpy / python RNG states), all read and restored through Pyro's public kernel
 API (``step_size``, ``inverse_mass_matrix``, ``initial_params``, ``setup``). A rerun with the same settings
 loads finished chains without sampling and continues unfinished ones from their last file:
-the continued draws are bit-identical to an uninterrupted run's. A checkpoint carries the
-run's fingerprint (``bayespd.infer.fingerprint``: kernel, its options, warmup, the chain's
-seed, the data, the model's sites and start, the mass matrix seed); a run with another is
-refused with ``CheckpointMismatchError`` naming what differs. ``num_samples`` is not part of
-it: draw ``i`` does not depend on how many follow, so a finished chain serves a run of fewer
-draws and continues for one of more. A kill during warmup loses
+the continued draws are bit-identical to an uninterrupted run's. A kill during warmup loses
 that chain's warmup (the adaptation's running averages are not saved); it restarts from its
-seed, so the result is still the same.
+seed, so the result is still the same. A checkpoint carries the run's fingerprint
+(``bayespd.infer.fingerprint``: kernel, its options, warmup, the chain's seed, the data, the
+model's sites and start, the mass matrix seed); a run with another is refused with
+``CheckpointMismatchError`` naming what differs. ``num_samples`` is not part of it: draw ``i``
+does not depend on how many follow, so a finished chain serves a run of fewer draws and
+continues for one of more.
 """
 
 import math
