@@ -10,6 +10,7 @@ from matplotlib.path import Path
 from scipy.spatial import cKDTree
 
 from bayespd.discretize import Particles
+from bayespd.validate import finite
 
 
 @dataclass(frozen=True)
@@ -54,6 +55,7 @@ def find_bonds(particles: Particles, delta_max: float, rule: str = "linear") -> 
     if rule not in RULES:
         raise ValueError(f"unknown partial-volume rule {rule!r}: use one of {RULES}")
     h = particles.h
+    finite("delta_max", delta_max, "pass a finite horizon (typically 3h)")
     if not delta_max >= h:
         raise ValueError(f"delta_max={delta_max} must be at least the grid spacing h={h}")
     pairs = cKDTree(particles.x).query_pairs(delta_max + h / 2, output_type="ndarray")
@@ -90,19 +92,24 @@ def precrack(particles: Particles, bonds: Bonds, crack) -> Bonds:
     """Remove the bonds crossing ``crack``: a segment [[x0, y0], [x1, y1]] in 2D, or the
     vertices (k >= 3, 3) of a planar polygon in 3D. A bond is cut when its ends lie strictly
     on opposite sides of the crack line (plane) and it passes through the segment (polygon);
-    place cracks between particle rows, since a bond ending on the crack is kept."""
-    crack = np.asarray(crack, dtype=float)
-    if not np.all(np.isfinite(crack)):
-        raise ValueError("crack coordinates contain NaN or inf")
+    place cracks between particle rows, since a bond ending on the crack is kept. A crack of
+    zero length, or one that cuts no bond (outside the body), is refused."""
+    crack = finite("the crack coordinates", np.asarray(crack, dtype=float))
     a, b = particles.x[bonds.i], particles.x[bonds.j]
     if particles.dim == 2:
         if crack.shape != (2, 2):
             raise ValueError("a 2D pre-crack is a segment [[x0, y0], [x1, y1]]")
+        if not np.linalg.norm(crack[1] - crack[0]) > 0:
+            raise ValueError(f"the pre-crack {crack.tolist()} has zero length: give two distinct end points")
         cut = _crosses_segment(a, b, crack[0], crack[1])
     else:
         if crack.ndim != 2 or crack.shape[0] < 3 or crack.shape[1] != 3:
             raise ValueError("a 3D pre-crack is a planar polygon given by (k >= 3, 3) vertices")
         cut = _crosses_polygon(a, b, crack)
+    if not cut.any():
+        raise ValueError(f"the pre-crack {crack.tolist()} cuts no bond: it lies outside the body "
+                         f"[{particles.lower().tolist()}, {particles.upper().tolist()}] or along a "
+                         "particle row; place it inside, between particle rows")
     return bonds.without(cut)
 
 

@@ -8,6 +8,7 @@ import torch
 
 from bayespd.discretize import Particles
 from bayespd.linalg.sparse import Pattern
+from bayespd.validate import finite
 
 
 class Dirichlet:
@@ -23,6 +24,10 @@ class Dirichlet:
         if not self.mask.any():
             raise ValueError("the Dirichlet region is empty: check the mask or layer depth")
         self.value, self.depth = tuple(value), depth
+        for c, v in enumerate(self.value):
+            if v is not None:
+                finite(f"the Dirichlet value of component {c}", v,
+                       "give a finite displacement (None leaves a component free)")
 
     @staticmethod
     def layer(particles: Particles, side: str, depth: float, value=(0.0, 0.0)) -> "Dirichlet":
@@ -37,9 +42,7 @@ class Load:
         self.mask = np.asarray(mask, dtype=bool)
         if not self.mask.any():
             raise ValueError("the load region is empty: check the mask or layer depth")
-        self.force = torch.as_tensor(force)
-        if not bool(torch.all(torch.isfinite(self.force))):
-            raise ValueError("the load contains NaN or inf: pass a finite force")
+        self.force = finite("the load", torch.as_tensor(force), "pass a finite force")
 
     def nodal(self, particles: Particles) -> torch.Tensor:
         """Nodal forces (N, dim): F * V_i / sum V over the region."""

@@ -19,6 +19,8 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
+from bayespd.validate import finite, positive, reading
+
 REQUIRED = ("COORDINATE_X", "COORDINATE_Y", "DISPLACEMENT_X", "DISPLACEMENT_Y", "SIGMA", "STATUS_FLAG")
 SUCCESS = (0, 1, 2, 3, 4, 6, 18)  # DICe::Status_Flag values of a measured, successful subset
 NAN_TEXT = ["NAN", "-NAN", "NAN(IND)", "-NAN(IND)", "nan(ind)", "-nan(ind)"]  # C's %E / %e NaN (glibc, MSVC)
@@ -48,15 +50,29 @@ def _files(paths) -> list[Path]:
     return files
 
 
+def _fields(line: str) -> int:
+    """Comma-separated fields of a line, a trailing delimiter not counted."""
+    parts = line.rstrip("\r\n").split(",")
+    return len(parts) - (len(parts) > 1 and not parts[-1].strip())
+
+
 def _table(path: Path) -> pd.DataFrame:
     """One solution file: the rows after the ``***`` header, sorted by SUBSET_ID when present."""
-    with open(path) as f:
-        lines = f.readlines()
+    with reading(path, "a DICe solution file (text)", "pass the comma-separated .txt files DICe writes"):
+        lines = path.read_text().splitlines(keepends=True)
+    if any("\x00" in line for line in lines):
+        raise ValueError(f"{path} is a binary file, not a DICe solution file: pass the .txt files DICe writes")
     start = next((i for i, line in enumerate(lines) if line.strip() and not line.startswith(("***", "#"))), None)
     if start is None or "," not in lines[start]:
         raise ValueError(f"{path} has no comma-separated column header: read_dice reads DICe solution "
                          "files written with the default output_delimiter ','")
-    table = pd.read_csv(io.StringIO("".join(lines[start:])), skipinitialspace=True, na_values=NAN_TEXT)
+    width = _fields(lines[start])
+    for number, line in enumerate(lines[start + 1:], start + 2):
+        if line.strip() and _fields(line) != width:
+            raise ValueError(f"{path}, line {number}: {_fields(line)} fields where the header has {width} "
+                             "(a truncated or damaged file?): re-export it from DICe or delete that row")
+    with reading(path, "a DICe solution file (text)"):
+        table = pd.read_csv(io.StringIO("".join(lines[start:])), skipinitialspace=True, na_values=NAN_TEXT)
     if table.empty:
         raise ValueError(f"{path} lists no subsets")
     table.columns = table.columns.str.strip().str.upper()
@@ -110,6 +126,8 @@ def frame_data(ds: xr.Dataset, frame: int, scale: float = 1.0, origin=(0.0, 0.0)
     and the y displacement). Pass y and mask (with any other mask, ``&``) to
     :func:`bayespd.observe.model_data`.
     """
+    positive("scale", scale, "pass the model units per pixel")
+    finite("origin", origin, "pass the model position of pixel (0, 0)")
     if frame not in ds["frame"].values:
         raise ValueError(f"no frame {frame}: the data set has frames {ds['frame'].values.tolist()}")
     one = ds.sel(frame=frame)

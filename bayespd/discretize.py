@@ -6,6 +6,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from bayespd.validate import positive
+
 
 @dataclass(frozen=True)
 class Particles:
@@ -33,8 +35,9 @@ class Particles:
             raise ValueError(f"{int(np.sum(self.volume <= 0))} particle(s) have zero or negative "
                              f"volume (e.g. particle {k} at {self.x[k].tolist()}): fix or drop "
                              "degenerate cells")
-        if not (self.h > 0 and self.thickness > 0):
-            raise ValueError("h and thickness must be positive")
+        positive("the particle spacing h", self.h)
+        positive("the thickness", self.thickness)
+        _refuse_duplicates(self.x, self.h)
 
     @property
     def n(self) -> int:
@@ -89,10 +92,19 @@ class Particles:
         return mask
 
 
+def _refuse_duplicates(x: np.ndarray, h: float) -> None:
+    """Particles closer than 1e-6 h are one point given twice (their bond would be ~0 long)."""
+    close = cKDTree(x).query_pairs(1e-6 * h, output_type="ndarray")
+    if len(close):
+        i, j = close[0]
+        raise ValueError(f"{len(close)} pair(s) of particles are closer than 1e-6 h = {1e-6 * h:g} (e.g. {i} "
+                         f"at {x[i].tolist()} and {j} at {x[j].tolist()}): remove duplicate points")
+
+
 def _cell_centres(extent, h: float, origin) -> np.ndarray:
     """Centres of a regular grid of cubic cells of size h filling a box of the given extent."""
-    if not (h > 0 and all(e > 0 for e in extent)):
-        raise ValueError("the box extents and h must be positive")
+    positive("h", h)
+    positive("the box extents", list(extent))
     counts = [round(e / h) for e in extent]
     if any(abs(c * h - e) > 1e-9 * e for c, e in zip(counts, extent)):
         raise ValueError(f"every extent of the box must be a multiple of h={h}")
@@ -125,10 +137,4 @@ def from_points(x, volume, h: float | None = None, thickness: float = 1.0) -> Pa
     if volume.shape != (len(x),):
         raise ValueError(f"volume must have one entry per particle ({len(x)}), got {volume.shape}")
     h = h or float(np.abs(np.median(volume) / thickness) ** (1 / x.shape[1]))
-    particles = Particles(x, volume, float(h), thickness)  # checks NaN and volumes
-    dup = cKDTree(x).query_pairs(1e-9 * h, output_type="ndarray")
-    if len(dup):
-        i, j = dup[0]
-        raise ValueError(f"{len(dup)} pair(s) of particles coincide (e.g. {i} and {j} at "
-                         f"{x[i].tolist()}): remove duplicate points")
-    return particles
+    return Particles(x, volume, float(h), thickness)  # checks NaN, volumes and duplicates

@@ -11,11 +11,10 @@ from __future__ import annotations
 
 import itertools
 import math
-from pathlib import Path
-
 import numpy as np
 
 from bayespd.discretize import Particles, from_points
+from bayespd.validate import readable_file, reading
 
 SUPPORTED = {2: ("triangle", "quad"), 3: ("tetra", "hexahedron")}
 LOWER = {2: ("vertex", "line"), 3: ("vertex", "line", "triangle", "quad", "polygon")}  # boundary entities
@@ -57,10 +56,9 @@ def from_mesh(path, thickness: float = 1.0, h: float | None = None) -> Particles
         import meshio
     except ImportError as error:
         raise ImportError("from_mesh reads meshes with meshio: pip install bayespd[mesh]") from error
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no mesh file {path}: check the path")
-    mesh = meshio.read(path)
+    path = readable_file(path, "mesh file")
+    with reading(path, "a mesh", "pass a complete mesh file in a format meshio reads (.msh, .vtu, .inp, ...)"):
+        mesh = meshio.read(path)
     points = mesh.points
     flat = points.shape[1] == 2 or np.ptp(points[:, 2]) == 0
     dim = 2 if flat else 3
@@ -74,6 +72,9 @@ def from_mesh(path, thickness: float = 1.0, h: float | None = None) -> Particles
     centroids, volumes = [], []
     for block in mesh.cells:
         if block.type in SUPPORTED[dim]:
+            if block.data.size and not 0 <= block.data.min() <= block.data.max() < len(points):
+                raise ValueError(f"{path}: a {block.type} cell refers to a node outside 0..{len(points) - 1} "
+                                 "(a damaged file?): re-export the mesh")
             x = points[block.data]
             c, v = _multilinear(x, np.array(CORNERS[block.type])) if block.type in CORNERS else _simplices(x)
             centroids.append(c)

@@ -18,6 +18,7 @@ import torch
 from scipy.spatial import Delaunay, cKDTree
 
 from bayespd.discretize import Particles
+from bayespd.validate import finite, in_range, positive
 
 
 def locate(particles: Particles, points: np.ndarray):
@@ -48,9 +49,9 @@ def _points(particles: Particles, points) -> np.ndarray:
     points = np.atleast_2d(np.asarray(points, dtype=float))
     if points.ndim != 2 or points.shape[1] != particles.dim:
         raise ValueError(f"points must be (n, {particles.dim}), got shape {points.shape}")
-    if not np.all(np.isfinite(points)):
-        raise ValueError("observation points contain NaN or inf: drop them before building the operator")
-    return points
+    if len(points) == 0:
+        raise ValueError("the observation has no points: give at least one (n, dim) point")
+    return finite("the observation points", points, "drop them before building the operator")
 
 
 class LinearObservation:
@@ -175,6 +176,10 @@ class GridObservation(LinearObservation):
         index = lattice.lookup(base[:, None, :] + corners)
         weights = np.prod(np.where(corners, t[:, None, :], 1 - t[:, None, :]), axis=-1)
         valid = np.all((index >= 0) | (weights == 0), axis=1)
+        if not valid.any():
+            raise ValueError(f"none of the {len(points)} points can be interpolated from the particles "
+                             "(each is outside the body or next to a hole or edge): check their units "
+                             "and origin, or use bp.Observation")
         weights[~valid] = 0.0
         index[index < 0] = 0  # with weight 0
         super().__init__(points, index, weights, np.repeat(valid[:, None], particles.dim, axis=1))
@@ -184,10 +189,12 @@ def grid_points(origin, spacing, counts) -> np.ndarray:
     """A regular grid of points, as DIC software reports them: ``counts`` points per axis
     (x, y[, z]) from ``origin`` with ``spacing`` (scalar or per axis); x varies fastest, so
     ``values.reshape(*reversed(counts), -1)`` is an image of rows."""
-    origin, counts = np.asarray(origin, float), np.asarray(counts)
-    spacing = np.broadcast_to(np.asarray(spacing, float), origin.shape)
-    if counts.shape != origin.shape or np.any(counts < 1) or np.any(spacing <= 0):
-        raise ValueError("grid_points needs one count (>= 1) and a positive spacing per axis of origin")
+    origin = finite("origin", np.asarray(origin, float), "pass the position of the first point")
+    counts = np.asarray(counts)
+    spacing = positive("spacing", np.asarray(spacing, float), "pass a finite positive spacing per axis")
+    spacing = np.broadcast_to(spacing, origin.shape)
+    if counts.shape != origin.shape or np.any(counts < 1):
+        raise ValueError("grid_points needs one count (>= 1) per axis of origin")
     axes = [o + d * np.arange(c) for o, d, c in zip(origin, spacing, counts)]
     return np.stack(np.meshgrid(*axes, indexing="xy"), axis=-1).reshape(-1, len(origin))
 
@@ -200,8 +207,7 @@ def edge_mask(particles: Particles, points, width: float) -> np.ndarray:
     grid), so holes and notches have edges too; points outside the body are dropped.
     """
     points = _points(particles, points)
-    if not width >= 0:
-        raise ValueError(f"width must be >= 0, got {width}")
+    in_range("width", width, 0.0, np.inf, "pass the band to drop along the edges, >= 0", closed=(True, False))
     lattice = _Lattice(particles)
     nearest = np.rint(lattice.coordinates(points)).astype(int)
     reach = int(np.ceil(width / lattice.h)) + 1  # farther empty cells are >= width away

@@ -13,10 +13,12 @@ import torch
 from bayespd.connectivity import floating_particles
 from bayespd.linalg.stiffness_solver import Assembly
 from bayespd.boundary import Constraints, Dirichlet, Load
+from bayespd.materials.checks import NonFiniteParameterError
 from bayespd.observe import LinearObservation
 from bayespd.linalg.adjoint import ValuesForm, solve_form
 from bayespd.solvers.noise import Covariance
 from bayespd.solvers.body import LoadedBody
+from bayespd.validate import finite
 
 
 class Scene:
@@ -49,6 +51,7 @@ class Scene:
         p = material.particles
         if not eps >= 0:
             raise ValueError(f"the confinement eps must be >= 0, got {eps}")
+        finite("the confinement eps", eps, "pass a finite eps >= 0")
         if eps and solver != "direct":
             raise ValueError("eps > 0 needs solver='direct'")
         self.eps = float(eps)
@@ -83,6 +86,7 @@ class Scene:
             self._precondition_rows = {material.grams()[0]: short}
         _refuse_floating_pieces(material.bonds, self.constraints.fixed_particles)
         self.force = sum((load.nodal(p) for load in self.loads), torch.zeros(p.n, p.dim))
+        _refuse_clamped_loads(self.loads, p, self.constraints.free_mask.reshape(p.n, p.dim))
         self.param_names = material.param_names
 
     def at(self, params: dict, loaded=None) -> LoadedBody:
@@ -112,6 +116,9 @@ class Scene:
         if missing or unknown:
             raise ValueError(f"params need {list(self.param_names)} (+ optional 'load'); "
                              f"missing {sorted(missing)}, unknown {sorted(unknown)}")
+        if "load" in params:
+            finite("the load factor params['load']", params["load"], "pass a finite load factor",
+                   NonFiniteParameterError)
         return {k: torch.as_tensor(v) for k, v in params.items()}
 
     def _form(self, v_free, u_free, *theta):
@@ -210,6 +217,24 @@ class Scene:
         if self.observation is None:
             raise ValueError("this scene has no observation operator")
         return self.observation(u)
+
+
+def _refuse_clamped_loads(loads, particles, free: np.ndarray) -> None:
+    """A load whose force acts only on Dirichlet dofs does nothing (the support takes it):
+    refuse it; warn when part of it does."""
+    for k, load in enumerate(loads):
+        force = load.force.detach().cpu().numpy()
+        volume = np.where(load.mask, particles.volume, 0.0)
+        lost = [(c, volume[~free[:, c]].sum() / volume.sum()) for c in np.flatnonzero(force)]
+        if lost and all(share == 1 for _, share in lost):
+            raise ValueError(f"load {k} acts only on Dirichlet-constrained dofs (its region lies in a "
+                             "clamped layer), so the supports take it and it moves nothing: apply it "
+                             "to free particles, e.g. the layer on the opposite side")
+        for c, share in lost:
+            if share > 0:
+                warnings.warn(f"{share:.0%} of load {k}'s component {c} acts on Dirichlet-constrained "
+                              "dofs and is taken by the supports: keep loaded and clamped regions apart",
+                              stacklevel=3)
 
 
 def _refuse_floating_pieces(bonds, fixed: np.ndarray) -> None:

@@ -207,3 +207,28 @@ def test_bad_horizons_name_the_fix():
     with pytest.raises(ValueError, match="finite"):
         check_horizon(float("nan"), 1.0, 3.0)
     check_horizon(3.0 * (1 + 1e-13), 1.0, 3.0)  # rounding above delta_max is accepted
+
+
+@pytest.mark.parametrize("crack, match", [
+    ([[2.0, 2.5], [2.0, 2.5]], r"pre-crack \[\[2.0, 2.5\], \[2.0, 2.5\]\] has zero length"),
+    ([[20.0, 2.5], [30.0, 2.5]], r"cuts no bond: it lies outside the body \[\[0.0, 0.0\], \[10.0, 6.0\]\]"),
+    ([[0.0, np.inf], [1.0, 2.0]], "crack coordinates contains NaN or inf"),
+])
+def test_a_precrack_that_cuts_nothing_is_refused(crack, match):
+    p = bp.grid_2d(10.0, 6.0, 1.0)
+    with pytest.raises(ValueError, match=match):
+        precrack(p, bp.find_bonds(p, 2.5), crack)
+
+
+def test_a_tiny_precrack_between_rows_cuts_the_bonds_through_it():
+    """1e-3 h long, between two rows: only the bonds passing through it go, all vertical-ish."""
+    p = bp.grid_2d(10.0, 6.0, 1.0)
+    bonds = bp.find_bonds(p, 2.5)
+    cut = precrack(p, bonds, [[5.0, 3.0], [5.001, 3.0]])
+    assert 0 < bonds.n - cut.n < 10
+
+
+def test_infinite_delta_max_is_refused():
+    p = bp.grid_2d(4.0, 4.0, 1.0)
+    with pytest.raises(ValueError, match="delta_max contains NaN or inf.*finite horizon"):
+        bp.find_bonds(p, np.inf)

@@ -118,3 +118,10 @@ def test_non_finite_load():
     p = bp.grid_2d(6.0, 4.0, 1.0)
     with pytest.raises(ValueError, match="load contains NaN"):
         bp.Load(p.layer("right", 1.0), (np.nan, 0.0))
+
+
+@pytest.mark.parametrize("value", [(np.nan, 0.0), (0.0, np.inf), (None, -np.inf)])
+def test_non_finite_dirichlet_value(value):
+    p = bp.grid_2d(6.0, 4.0, 1.0)
+    with pytest.raises(ValueError, match=r"Dirichlet value of component \d contains NaN or inf.*None leaves"):
+        bp.Dirichlet(p.layer("left", 2.0), value)

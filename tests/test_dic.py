@@ -95,3 +95,50 @@ def test_bad_file_lists(tmp_path):
     (tmp_path / "notes.txt").write_text(HEADER)
     with pytest.raises(ValueError, match="no frame number"):
         read_dice([tmp_path / "notes.txt"])
+
+
+def test_a_file_truncated_mid_row_names_the_file_and_line(run):
+    path = run / "DICe_solution_2.txt"
+    text = path.read_text()
+    path.write_text(text[: text.rindex(",", 0, len(text) - 30)])  # cut inside the last subset's row
+    with pytest.raises(ValueError, match=r"DICe_solution_2.txt, line 12: \d fields where the header has 9 "
+                                         r"\(a truncated or damaged file\?\)"):
+        read_dice(str(run / "DICe_solution_*.txt"))
+
+
+def test_an_extra_field_names_the_line(tmp_path):
+    path = write_frame(tmp_path, 1)
+    lines = path.read_text().splitlines()
+    lines[9] += ",7.0"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ValueError, match=r"DICe_solution_1.txt, line 10: 10 fields where the header has 9"):
+        read_dice(path)
+
+
+@pytest.mark.parametrize("content, match", [
+    (b"\x89PNG\r\n\x1a\n\xff\xfe\x00\x00", r"cannot read .*DICe_solution_1.txt as a DICe solution file.*UnicodeDecodeError"),
+    (b"COORDINATE_X,COORDINATE_Y\n\x00\x01,2\n", r"DICe_solution_1.txt is a binary file"),
+])
+def test_binary_files_are_named(tmp_path, content, match):
+    path = tmp_path / "DICe_solution_1.txt"
+    path.write_bytes(content)
+    with pytest.raises(ValueError, match=match):
+        read_dice(path)
+
+
+def test_a_file_without_final_newline_and_trailing_delimiters_is_read(tmp_path):
+    """Rows ending with the delimiter, as some DICe builds write them, and no final newline."""
+    path = write_frame(tmp_path, 1)
+    path.write_text(",\n".join(path.read_text().splitlines()[7:]) + ",")
+    ds = read_dice(path)
+    assert ds.sizes["point"] == 4 and np.isfinite(ds["displacement"].values).all()
+
+
+@pytest.mark.parametrize("kw, match", [
+    ({"scale": 0.0}, "scale must be positive, got 0: pass the model units per pixel"),
+    ({"scale": float("nan")}, "scale contains NaN or inf"),
+    ({"origin": (0.0, float("inf"))}, r"origin contains NaN or inf \(1 of 2 entries"),
+])
+def test_frame_data_refuses_a_bad_scale_or_origin(run, kw, match):
+    with pytest.raises(ValueError, match=match):
+        frame_data(read_dice(str(run / "DICe_solution_*.txt")), 1, **kw)

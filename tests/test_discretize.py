@@ -71,7 +71,7 @@ def test_from_points_keeps_positions_volumes_and_the_given_spacing():
 
 
 @pytest.mark.parametrize("x, volume, match", [
-    ([[0.0, 0.0], [1.0, 0.0], [0.0, 0.0]], [1.0, 1.0, 1.0], "coincide.*remove duplicate"),
+    ([[0.0, 0.0], [1.0, 0.0], [0.0, 0.0]], [1.0, 1.0, 1.0], "closer than 1e-6 h.*remove duplicate"),
     ([[0.0, 0.0], [1.0, 0.0]], [1.0, 0.0], "zero or negative volume"),
     ([[0.0, 0.0], [1.0, 0.0]], [1.0, -2.0], "zero or negative volume"),
     ([[0.0, np.nan], [1.0, 0.0]], [1.0, 1.0], "NaN or inf"),
@@ -86,3 +86,26 @@ def test_bad_particle_sets(x, volume, match):
 def test_from_points_spacing_from_volumes():
     p = bp.from_points(bp.grid_3d(2.0, 2.0, 2.0, 0.5).x, np.full(64, 0.125))
     assert p.h == pytest.approx(0.5) and p.dim == 3
+
+
+def test_particles_closer_than_1e_6_h_are_duplicates():
+    x = np.array([[0.0, 0.0], [1.0, 0.0], [1.0 + 1e-7, 0.0]])
+    with pytest.raises(ValueError, match=r"1 pair\(s\) of particles are closer than 1e-6 h.*remove duplicate"):
+        bp.from_points(x, np.ones(3), h=1.0)
+    near = bp.from_points(x + [[0.0, 0.0], [0.0, 0.0], [1e-5, 0.0]], np.ones(3), h=1.0)  # 1e-5 h: kept
+    assert near.n == 3
+
+
+@pytest.mark.parametrize("extent, h, match", [
+    ((np.inf, 2.0), 1.0, "box extents contains NaN or inf"),
+    ((4.0, 2.0), np.nan, "h contains NaN or inf"),
+    ((4.0, 2.0), -1.0, "h must be positive, got -1"),
+])
+def test_grid_of_non_finite_extent_or_spacing(extent, h, match):
+    with pytest.raises(ValueError, match=match):
+        bp.grid_2d(*extent, h)
+
+
+def test_infinite_spacing_is_refused():
+    with pytest.raises(ValueError, match="the particle spacing h contains NaN or inf"):
+        bp.Particles(np.zeros((1, 2)), np.ones(1), np.inf)

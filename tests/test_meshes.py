@@ -100,3 +100,21 @@ def test_core_imports_no_meshio():
             names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
                 [node.module or ""] if isinstance(node, ast.ImportFrom) else []
             assert not any(n.split(".")[0] == "meshio" for n in names), source
+
+
+@pytest.mark.parametrize("name, content", [
+    ("garbage.msh", b"$MeshFormat\n2.2 0 8\n$EndMeshFormat\n$Nodes\n3\n1 0 0\n"),  # truncated in a node
+    ("binary.vtu", bytes(range(256)) * 4),
+    ("plate.unknown", b"1 2 3\n"),
+])
+def test_malformed_mesh_files_are_named(tmp_path, name, content):
+    (tmp_path / name).write_bytes(content)
+    with pytest.raises(ValueError, match=rf"cannot read .*{name} as a mesh \(.*\): pass a complete mesh file"):
+        from_mesh(tmp_path / name)
+
+
+def test_cells_pointing_past_the_nodes_are_refused(tmp_path):
+    nodes = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    meshio.write(tmp_path / "bad.vtu", meshio.Mesh(nodes, [("triangle", np.array([[0, 1, 2], [0, 1, 5]]))]))
+    with pytest.raises(ValueError, match=r"bad.vtu: a triangle cell refers to a node outside 0..2"):
+        from_mesh(tmp_path / "bad.vtu")

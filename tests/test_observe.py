@@ -159,3 +159,30 @@ def test_opening_is_the_difference_of_the_two_faces(small_scene):
     assert obs.mask[:, 1].all() and not obs.mask[:, 0].any()
     with pytest.raises(ValueError, match="matching"):
         bp.OpeningObservation(p, above, below[:1])
+
+
+def test_an_observation_of_no_points_is_refused():
+    p = bp.grid_2d(4.0, 3.0, 1.0)
+    for make in (bp.Observation, GridObservation):
+        with pytest.raises(ValueError, match="the observation has no points"):
+            make(p, np.zeros((0, 2)))
+    with pytest.raises(ValueError, match="none of the 2 points can be interpolated.*units and origin"):
+        GridObservation(p, [[40.0, 30.0], [-5.0, 1.0]])
+    one = GridObservation(p, [[1.5, 1.5]])  # one point suffices
+    np.testing.assert_allclose(one(torch.as_tensor(p.x)), [[1.5, 1.5]], rtol=1e-12)
+
+
+def test_grid_points_refuse_non_finite_origin_and_spacing():
+    with pytest.raises(ValueError, match="spacing contains NaN or inf"):
+        grid_points((0.0, 0.0), np.inf, (2, 2))
+    with pytest.raises(ValueError, match="origin contains NaN or inf"):
+        grid_points((np.nan, 0.0), 1.0, (2, 2))
+    np.testing.assert_allclose(grid_points((0.0, 0.0), 1e-300, (2, 1)), [[0.0, 0.0], [1e-300, 0.0]], rtol=0)
+
+
+def test_edge_mask_refuses_a_negative_or_infinite_width():
+    p = bp.grid_2d(4.0, 3.0, 1.0)
+    with pytest.raises(ValueError, match=r"width must lie in \[0, inf\), got -1"):
+        edge_mask(p, p.x, -1.0)
+    with pytest.raises(ValueError, match="width contains NaN or inf"):
+        edge_mask(p, p.x, np.inf)

@@ -5,6 +5,7 @@ import torch
 
 import bayespd as bp
 from bayespd.linalg import adjoint, sparse
+from bayespd.materials.checks import NonFiniteParameterError
 from tests.conftest import plate_scene
 
 # delta = 2.2 h keeps every bond away from a kink of the partial-volume weights (|xi| = delta +- h/2)
@@ -158,3 +159,38 @@ def test_prescribed_displacement_load_is_differentiable_only_when_asked():
         f = [(w * scene.free_load({"K": k, "G": 1400.0, "delta": 2.2})).sum() for k in (2990.0, 3010.0)]
         assert not scene.free_load({"K": K, "G": 1400.0, "delta": 2.2}).requires_grad
     assert float(dK) != 0 and abs(float(dK) - float(f[1] - f[0]) / 20.0) < 1e-4 * abs(float(dK))
+
+
+def small_plate():
+    p = bp.grid_2d(6.0, 3.0, 1.0)
+    return p, bp.LPS(p, bp.find_bonds(p, 2.0))
+
+
+@pytest.mark.parametrize("load", [float("nan"), float("inf"), torch.tensor(float("nan"), requires_grad=True)])
+def test_non_finite_load_factor_is_refused(load):
+    p, material = small_plate()
+    scene = bp.Scene(material, [bp.Dirichlet.layer(p, "left", 2.0)], [bp.Load(p.layer("right", 1.0), (1.0, 0.0))])
+    with pytest.raises(NonFiniteParameterError, match=r"load factor params\['load'\] contains NaN or inf.*finite"):
+        scene.solve({"K": 1.0, "G": 0.5, "delta": 2.0, "load": load})
+
+
+def test_extreme_load_factor_scales_the_displacement_linearly():
+    p, material = small_plate()
+    scene = bp.Scene(material, [bp.Dirichlet.layer(p, "left", 2.0)], [bp.Load(p.layer("right", 1.0), (1.0, 0.0))])
+    params = {"K": 1.0, "G": 0.5, "delta": 2.0}
+    u1, big = scene.solve({**params, "load": 1.0}), scene.solve({**params, "load": 1e200})
+    assert torch.isfinite(big).all()
+    torch.testing.assert_close(big / 1e200, u1, rtol=0.0, atol=1e-12 * float(u1.abs().max()))
+
+
+def test_load_on_the_clamped_layer_is_refused_and_a_partial_one_warned():
+    p, material = small_plate()
+    clamp = [bp.Dirichlet.layer(p, "left", 2.0)]
+    with pytest.raises(ValueError, match="load 0 acts only on Dirichlet-constrained dofs.*apply it to free"):
+        bp.Scene(material, clamp, [bp.Load(p.layer("left", 1.0), (1.0, 0.0))])
+    roller = [bp.Dirichlet.layer(p, "left", 2.0, (0.0, None))]  # y stays free: a y load there acts
+    u = bp.Scene(material, roller + [bp.Dirichlet(p.layer("right", 1.0), (None, 0.0))],
+                 [bp.Load(p.layer("left", 1.0), (0.0, 1.0))]).solve({"K": 1.0, "G": 0.5, "delta": 2.0})
+    assert torch.isfinite(u).all() and float(u[p.layer("left", 1.0), 1].min()) > 0
+    with pytest.warns(UserWarning, match=r"50% of load 0's component 0 acts on Dirichlet-constrained dofs"):
+        bp.Scene(material, clamp, [bp.Load(p.box((0.0, 0.0), (4.0, 1.0)), (1.0, 0.0))])

@@ -30,12 +30,18 @@ from functools import partial
 
 import numpy as np
 
+from bayespd.linalg.sparse import ConvergenceError, NotPositiveDefiniteError
+from bayespd.solvers.dynamics import NumericalInstabilityError
+from bayespd.validate import device as check_device
+
 from .execution import check_workers, run_tasks
 from .scene import BATCH, FractureScene, realise, realise_batch
 from .stats import aggregate
 from .store import EnsembleStore
 
 KINDS = ("posterior", "mean")
+# what a realisation's own numbers cause: recorded as its (permanent) outcome
+NUMERICAL_ERRORS = (NumericalInstabilityError, NotPositiveDefiniteError, ConvergenceError)
 
 
 def posterior_draws(tree, names) -> dict:
@@ -74,6 +80,7 @@ def realisation_inputs(draws: dict, seed: int, i: int, kind: str = "posterior"):
 
 def rerun(tree, scene: FractureScene, i: int, kind: str = "posterior", seed: int = 0, device=None) -> dict:
     """Realisation ``i`` of an ensemble run again, bit for bit (``scene.realise``)."""
+    check_device("device", device)
     params, _, brownian = realisation_inputs(posterior_draws(tree, scene.params), seed, i, kind)
     return realise(scene, params, brownian, device)
 
@@ -94,11 +101,13 @@ def _plan(scene: FractureScene, draws: dict, seed: int) -> dict:
 
 
 def _task(scene, items, device):
-    """A batch of realisations in a worker (``realise_batch``); a numerical blow-up becomes an
-    error record (kept, and counted in the results: never hidden), any other error is raised."""
+    """A batch of realisations in a worker (``realise_batch``); a numerical blow-up
+    (``NUMERICAL_ERRORS``: it would happen again) becomes an error record (kept, and counted in
+    the results: never hidden); any other error (out of memory, a bad device, a bug) is raised,
+    so a re-run tries that realisation again."""
     out = []
     for result in realise_batch(scene, items, device):
-        if isinstance(result, RuntimeError):
+        if isinstance(result, NUMERICAL_ERRORS):
             result = {"error": f"{type(result).__name__}: {result}"}
         elif isinstance(result, BaseException):
             raise result
@@ -150,7 +159,9 @@ def ensemble(tree, scene: FractureScene, n: int, *, store, n_mean: int | None = 
     ``scheduler``: None (local: ``workers`` processes, 1 = in this process), a
     ``distributed.Client`` or a scheduler address; ``workers`` also sets the tasks' count
     to a multiple of it (``_tasks``: pass a Dask cluster's worker count for the same
-    balance); ``device``: the torch device of each realisation's tensors (default CPU)."""
+    balance); ``device``: the torch device of each realisation's tensors (default CPU), checked
+    before any work."""
+    check_device("device", device)
     st, inputs = _prepare(tree, scene, n, n_mean, seed, store)
     todo = {key: (params, brownian) for key, (params, _, brownian) in inputs.items() if not st.done(*key)}
     batches = {keys: ([todo[key] for key in keys], device) for keys in _tasks(list(todo), workers)}

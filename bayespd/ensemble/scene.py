@@ -33,6 +33,7 @@ from bayespd import linalg
 from bayespd.damage import crack_length
 from bayespd.ensemble.heap import keep_temporaries_on_heap
 from bayespd.solvers.fracture import check_tangent
+from bayespd.validate import in_range
 from bayespd.linalg.lockstep import LockStep
 
 
@@ -70,8 +71,8 @@ class FractureScene:
             raise ValueError("origin and direction must be 2D points/vectors (the crack band is "
                              "measured across a line in the plane), direction non-zero")
         check_tangent(self.tangent)
-        if not 0 < self.threshold < 1:
-            raise ValueError("threshold must lie in (0, 1) (a damage index phi)")
+        for name in ("threshold", "path_threshold"):
+            in_range(name, getattr(self, name), 0.0, 1.0, "it is a damage index phi", closed=(False, False))
         x = np.asarray(self.x, dtype=np.float64)
         if x.ndim != 2 or x.shape[1] != 2:
             raise ValueError(f"x must be the (N, 2) particle positions, got shape {x.shape}")

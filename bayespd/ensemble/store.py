@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from bayespd.atomic import atomic_path
+from bayespd.validate import reading
 
 
 class PlanMismatchError(ValueError):
@@ -33,7 +34,8 @@ class EnsembleStore:
         path = self.root / "plan.json"
         text = json.dumps(plan, indent=1, sort_keys=True)
         if path.exists():
-            old = json.loads(path.read_text())
+            with reading(path, "the store's plan (JSON)", "delete the store directory to start again"):
+                old = json.loads(path.read_text())
             if old != json.loads(text):
                 changed = sorted(k for k in set(old) | set(plan) if old.get(k) != plan.get(k))
                 raise PlanMismatchError(
@@ -60,10 +62,12 @@ class EnsembleStore:
 
     def read(self, kind: str, i: int) -> dict:
         error = self._path(kind, i, ".err.json")
-        if error.exists():
-            return json.loads(error.read_text())
-        with np.load(self._path(kind, i, ".npz")) as f:
-            return {k: f[k] for k in f.files}
+        path = error if error.exists() else self._path(kind, i, ".npz")
+        with reading(path, "a stored realisation", "delete it and run the ensemble again to redo it"):
+            if path == error:
+                return json.loads(error.read_text())
+            with np.load(path) as f:
+                return {k: f[k] for k in f.files}
 
     def save_dataset(self, ds, name: str = "ensemble.nc") -> None:
         with atomic_path(self.root / name) as tmp:

@@ -2,8 +2,33 @@
 
 import math
 
+import numpy as np
 import torch
 from torch.distributions import constraints
+
+
+def as_tensors(data) -> dict:
+    """``data`` with its numpy arrays as torch tensors (floats in the default dtype), so a
+    model gets what Pyro takes; arrays of strings or objects are refused."""
+    if not isinstance(data, dict):
+        raise TypeError(f"data must be a dict of the model's keyword arguments, not {type(data).__name__}")
+    out = dict(data)
+    for k, v in data.items():
+        if isinstance(v, np.ndarray):
+            if v.dtype.kind not in "biuf":
+                raise TypeError(f"data[{k!r}] is an array of {v.dtype}: pass numbers (or booleans for a mask)")
+            out[k] = torch.as_tensor(v, dtype=torch.get_default_dtype() if v.dtype.kind == "f" else None)
+    return out
+
+
+def check_continuous(priors: dict) -> None:
+    """Every latent site (``{name: distribution}``) is continuous: the samplers and optimisers
+    move on a continuous space."""
+    for name, prior in priors.items():
+        if getattr(getattr(prior, "support", None), "is_discrete", False):  # a plate's subsample has none
+            raise ValueError(f"{name} has a discrete prior ({type(prior).__name__}): NUTS, HMC, SVI and "
+                             "Laplace need continuous latent variables; give it a continuous prior "
+                             "(e.g. LogNormal, or Uniform over its range) or enumerate it out")
 
 
 def check_data(data: dict, observed: str) -> None:

@@ -16,6 +16,7 @@ import numpy as np
 import xarray as xr
 
 from bayespd.atomic import atomic_path
+from bayespd.validate import readable_file, reading
 
 SAMPLE_DIMS = ("chain", "draw")
 DATA_GROUPS = ("observed_data", "constant_data")
@@ -65,9 +66,13 @@ def save(tree: xr.DataTree, path) -> None:
 
 
 def load(path) -> xr.DataTree:
-    """Read a tree written by :func:`save`, fully into memory (the file is closed)."""
-    with xr.open_datatree(os.fspath(path), engine="h5netcdf") as tree:
-        return tree.load()
+    """Read a tree written by :func:`save`, fully into memory (the file is closed); a missing
+    file raises ``FileNotFoundError``, a truncated or foreign one ``ValueError`` naming it."""
+    path = readable_file(path, "result file")
+    with reading(path, "a NetCDF result tree", "it is truncated or not written by bayespd.infer.save: "
+                 "fit again, or pass the right file"):
+        with xr.open_datatree(os.fspath(path), engine="h5netcdf") as tree:
+            return tree.load()
 
 
 def summary(tree: xr.DataTree, var_names=None):

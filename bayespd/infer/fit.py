@@ -27,7 +27,10 @@ import pyro
 import torch
 from pyro.infer.autoguide.initialization import init_to_median, init_to_value
 
-from .checks import check_data, check_observed_shape, check_priors, trace_priors
+from bayespd.validate import finite
+
+from .checks import (as_tensors, check_continuous, check_data, check_observed_shape, check_priors,
+                     trace_priors)
 from .datatree import build_tree
 from .laplace import Laplace
 from .method import Method
@@ -73,7 +76,8 @@ def _initial(init_values):
     if not init_values:
         return init_to_median
     dtype = torch.get_default_dtype()
-    values = {k: torch.as_tensor(v, dtype=dtype) for k, v in init_values.items()}
+    values = {k: finite(f"init_values[{k!r}]", torch.as_tensor(v, dtype=dtype), "start from finite values")
+              for k, v in init_values.items()}
     return init_to_value(values=values, fallback=init_to_median)
 
 
@@ -87,9 +91,9 @@ def fit(model, data: dict, method="nuts", **settings):
     ``TypeError`` naming its settings. Settings: ``Method`` (shared), ``NUTS``, ``HMC``, ``SVI``,
     ``Laplace``.
 
-    Input is checked first (``bayespd.infer.checks``): NaN data outside (or under)
-    ``data["mask"]``, observations of the wrong shape, and, given ``scene``, priors whose
-    support leaves the physical range. The seed fixes the start (``init_to_median`` draws from
+    Input is checked first (``bayespd.infer.checks``; numpy arrays in ``data`` become
+    tensors): NaN data outside (or under) ``data["mask"]``, observations of the wrong shape,
+    discrete priors, and, given ``scene``, priors whose support leaves the physical range. The seed fixes the start (``init_to_median`` draws from
     the prior). Every method then replays the model per draw: ``log_likelihood`` (pointwise,
     mask and scale applied, masked entries 0: ``az.loo`` works), ``posterior_predictive`` and
     ``pyro.deterministic`` sites (added to ``posterior``). ``observed_data``; ``constant_data``:
@@ -102,11 +106,13 @@ def fit(model, data: dict, method="nuts", **settings):
     ``mode_weights`` (when searched), ``created_at``, library versions.
     """
     s = settings_of(method, settings)
+    data = as_tensors(data)
     check_data(data, s.observed)
     pyro.set_rng_seed(s.seed)  # init_to_median draws from the prior: the seed fixes the start too
     init = _initial(s.init_values)
     trace = init_trace(model, data, init)
     check_observed_shape(trace, data, s.observed, s.scene)
+    check_continuous(trace_priors(trace))
     if s.scene is not None:
         check_priors(trace_priors(trace), s.scene)
 

@@ -53,6 +53,7 @@ from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
 from bayespd.atomic import atomic_path
+from bayespd.validate import count, in_range, positive
 from bayespd.materials import ParameterRangeError
 from bayespd.linalg.sparse import NotPositiveDefiniteError
 
@@ -70,30 +71,22 @@ class CheckpointMismatchError(ValueError):
     """A checkpoint directory holds the chains of another run."""
 
 
-def _count(minimum):
-    return lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= minimum, f"an integer >= {minimum}"
-
-
-SETTINGS = {  # setting: (test, allowed values, what it is)
-    "num_chains": (*_count(1), "the number of chains"),
-    "num_samples": (*_count(1), "the draws per chain"),
-    "num_warmup": (*_count(0), "the warm-up steps per chain"),
-    "checkpoint_every": (*_count(1), "the draws between checkpoint writes"),
-    "max_tree_depth": (*_count(1), "NUTS's largest tree is 2**max_tree_depth - 1 leapfrog steps; 10 is usual"),
-    "target_accept": (lambda v: isinstance(v, (int, float)) and 0 < v < 1, "a number in (0, 1)",
-                      "the acceptance probability the step size adapts to; 0.8 is usual, 0.95 for hard posteriors"),
-    "trajectory_length": (lambda v: v is None or isinstance(v, (int, float)) and 0 < v < math.inf,
-                          "None (2 pi) or a finite number > 0", "HMC's integration time per draw"),
+SETTINGS = {  # sampler setting: its check (``bayespd.validate``), with the fix named
+    "checkpoint_every": lambda v: count("checkpoint_every", v, 1, "the draws between checkpoint writes, e.g. 50"),
+    "max_tree_depth": lambda v: count("max_tree_depth", v, 1, "NUTS's largest tree has 2**max_tree_depth - 1 "
+                                                              "leapfrog steps; 10 is usual"),
+    "target_accept": lambda v: in_range("target_accept", v, 0, 1, "the acceptance probability the step size "
+                                        "adapts to; 0.8 is usual, 0.95 for hard posteriors", closed=(False, False)),
+    "trajectory_length": lambda v: v is None or positive("trajectory_length", v, "HMC's integration time per "
+                                                         "draw: a finite number > 0, or None for 2 pi"),
 }
 
 
 def check_settings(**settings) -> None:
-    """Refuse a sampler setting (a keyword of ``SETTINGS``) outside its range: ``ValueError``
-    naming the setting, the value and the allowed values."""
+    """Refuse a sampler setting (a keyword of ``SETTINGS``) outside its range (the counts
+    shared with other methods are checked by ``Method`` and ``Sampler``)."""
     for name, value in settings.items():
-        test, allowed, what = SETTINGS[name]
-        if not test(value):
-            raise ValueError(f"{name} must be {allowed} ({what}), not {value!r}")
+        SETTINGS[name](value)
 
 
 def check_mass_matrix_seed(covariance) -> None:
@@ -309,8 +302,6 @@ def run_chains(spec: ChainSpec, num_chains: int, chains="auto") -> tuple[dict, d
     Returns ``(draws, stats, grad_evals)`` with arrays shaped ``(chain, draw, ...)``."""
     if chains not in ("auto", "sequential", "processes"):
         raise ValueError(f"chains must be 'auto', 'sequential' or 'processes', not {chains!r}")
-    check_settings(num_chains=num_chains, num_samples=spec.num_samples, num_warmup=spec.num_warmup,
-                   checkpoint_every=spec.checkpoint_every)
     check_mass_matrix_seed(spec.seed_covariance)
     if spec.checkpoint is not None:
         spec.checkpoint.mkdir(parents=True, exist_ok=True)

@@ -11,6 +11,8 @@ fields here are shared by every method; ``fit`` uses them for what all methods s
 from dataclasses import dataclass, fields
 from typing import ClassVar, NamedTuple
 
+from bayespd.validate import count
+
 MODES = ("best", "weighted")
 
 
@@ -55,6 +57,9 @@ class Method:
     constant_data: dict | None = None
 
     def __post_init__(self):
+        count("num_samples", self.num_samples, 1, "ask for at least one draw per chain")
+        count("map_starts", self.map_starts, 1, "the MAP search needs at least one start")
+        count("seed", self.seed, 0)
         if self.init not in ("median", "map"):
             raise ValueError(f"init must be 'median' or 'map', not {self.init!r}")
         if self.map_starts != 1 and self.init != "map" and not self.searches_map:

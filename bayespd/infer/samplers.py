@@ -7,6 +7,8 @@ import numpy as np
 import torch
 from pyro.infer.autoguide.initialization import init_to_median
 
+from bayespd.validate import count
+
 from . import laplace as _laplace
 from .laplace import NotPositiveDefiniteHessian
 from .mcmc import SETTINGS, ChainSpec, check_settings, run_chains
@@ -54,6 +56,8 @@ class Sampler(Method):
 
     def __post_init__(self):
         super().__post_init__()
+        count("num_chains", self.num_chains, 1, "run at least one chain (4 to check convergence)")
+        count("num_warmup", self.num_warmup, 0, "use 0 to skip warm-up (e.g. with a seeded mass matrix)")
         check_settings(**{k: getattr(self, k) for k in SETTINGS if hasattr(self, k)})
         if not self.adapt_mass and self.mass_matrix_from is None:
             raise ValueError("adapt_mass=False keeps a seeded mass matrix: give mass_matrix_from "

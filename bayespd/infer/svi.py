@@ -27,6 +27,9 @@ from torch.distributions.transforms import AffineTransform
 from tqdm.auto import tqdm
 
 from . import laplace as _laplace
+from bayespd.materials.checks import ParameterRangeError
+from bayespd.validate import count, positive
+
 from .method import Draws, Method
 from .mixture import allocate, mode_weights, one_chain
 
@@ -77,7 +80,7 @@ def run_svi(model, data, guide, num_samples, seed, steps, lr, init, progress, ra
         losses = []
         with tqdm(range(steps), f"SVI ({guide})", disable=not progress) as bar:
             for i in bar:
-                losses.append(svi.step(**data))
+                losses.append(_step(svi, data, i, steps, lr))
                 if i % 50 == 0:
                     bar.set_postfix(loss=f"{losses[-1]:.4g}")
         with torch.no_grad():
@@ -86,6 +89,41 @@ def run_svi(model, data, guide, num_samples, seed, steps, lr, init, progress, ra
     posterior = {k: torch.stack([d[k] for d in draws])[None] for k in draws[0]}
     stats = xr.Dataset({"svi_loss": ("svi_step", np.array(losses))})
     return (posterior, stats) if not evidence else (posterior, stats, log_z)
+
+
+def _step(svi, data, i: int, steps: int, lr: float) -> float:
+    """One SVI step's loss. After the first step, a non-finite loss or guide parameter, or an
+    invalid draw (the model's ``ParameterRangeError``: a modulus overflowed; torch refusing a
+    guide distribution's parameters), is the optimiser diverging: a ``ValueError`` naming
+    ``svi_lr`` and the fix."""
+    try:
+        loss = svi.step(**data)
+    except (ValueError, RuntimeError) as error:
+        if i == 0 or not (_invalid_draw(error) or not _params_finite()):
+            raise
+        raise _diverged(i, steps, lr, f"the guide gave an invalid draw ({str(error).splitlines()[0]})") from error
+    if i == 0 and not math.isfinite(loss):
+        raise ValueError(f"the first SVI loss is {loss}: the model's log density is not finite at the "
+                         "initial values; check the priors, init_values and the data")
+    if not (math.isfinite(loss) and _params_finite()):
+        raise _diverged(i, steps, lr, "the ELBO or the guide's parameters became NaN or inf")
+    return loss
+
+
+def _invalid_draw(error: Exception) -> bool:
+    """A model's parameter out of range, or a distribution's parameters refused by torch."""
+    return isinstance(error, ParameterRangeError) or str(error).startswith("Expected parameter")
+
+
+def _diverged(i: int, steps: int, lr: float, what: str) -> ValueError:
+    return ValueError(f"SVI diverged at step {i + 1} of {steps} with svi_lr={lr:g}: {what}; "
+                      f"lower svi_lr (e.g. {lr / 10:g})")
+
+
+def _params_finite() -> bool:
+    """Whether every parameter in Pyro's param store is finite."""
+    store = pyro.get_param_store()
+    return all(bool(torch.isfinite(store[k]).all()) for k in store.keys())
 
 
 def log_evidence(model, guide, data, n: int) -> float:
@@ -115,6 +153,16 @@ class SVI(Method):
     svi_lr: float = 0.02
     svi_rank: int | None = None
     svi_particles: int = 1
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.guide not in GUIDES:
+            raise ValueError(f"guide must be one of {GUIDES}, not {self.guide!r}")
+        count("svi_steps", self.svi_steps, 1, "take at least one optimisation step (typically 1000s)")
+        count("svi_particles", self.svi_particles, 1, "use at least one ELBO sample per step")
+        positive("svi_lr", self.svi_lr, "pass a learning rate such as 0.02")
+        if self.svi_rank is not None:
+            count("svi_rank", self.svi_rank, 1, "or None for about sqrt(dim)")
 
     def _fit(self, model, data, init, seed, evidence=False):
         return run_svi(model, data, self.guide, self.num_samples, seed, self.svi_steps, self.svi_lr, init,

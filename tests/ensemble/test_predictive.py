@@ -177,3 +177,27 @@ def test_bad_input_names_the_fix(noisy_scene, tmp_path):
         ensemble(tree, noisy_scene, 1, store=tmp_path)
     with pytest.raises(ValueError, match="workers must be a positive integer"):
         ensemble(tree, noisy_scene, 2, n_mean=0, store=tmp_path, workers=0)
+
+
+@pytest.mark.parametrize("device, match", [
+    ("gpu", "device='gpu' is not a torch device"),
+    ("cuda:99", r"device='cuda:99': this machine has \d+ CUDA device"),
+])
+def test_a_bad_device_is_refused_before_any_work(quiet_scene, tmp_path, device, match):
+    with pytest.raises(ValueError, match=match):
+        ensemble(posterior(), quiet_scene, 2, n_mean=0, store=tmp_path / "store", device=device, workers=1)
+    assert not (tmp_path / "store").exists()
+    with pytest.raises(ValueError, match=match):
+        rerun(posterior(), quiet_scene, 0, device=device)
+
+
+def test_only_numerical_blow_ups_are_recorded(monkeypatch):
+    """A numerical error is the realisation's outcome (kept); any other RuntimeError (CUDA out
+    of memory, a bad device) is raised so that a re-run tries it again."""
+    from bayespd.solvers.dynamics import NumericalInstabilityError
+    outcome = [{"phi": np.zeros(2)}, NumericalInstabilityError("reduce dt")]
+    monkeypatch.setattr(predictive, "realise_batch", lambda scene, items, device: outcome)
+    assert predictive._task(None, [], None) == [outcome[0], {"error": "NumericalInstabilityError: reduce dt"}]
+    outcome[1] = RuntimeError("CUDA out of memory")
+    with pytest.raises(RuntimeError, match="CUDA out of memory"):
+        predictive._task(None, [], None)

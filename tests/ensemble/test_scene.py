@@ -74,3 +74,8 @@ def test_a_failed_realisation_is_returned_in_a_batch_and_raised_alone():
     with pytest.raises(ArithmeticError, match="no body for K=3.0"):
         realise(scene, {"K": 3.0}, 1)
     assert torch.get_num_threads() == threads  # restored
+
+
+def test_path_threshold_is_a_damage_index():
+    with pytest.raises(ValueError, match=r"path_threshold must lie in \(0, 1\), got 1.5: it is a damage index"):
+        FractureScene(print, ("K",), [1.0], 1.0, np.zeros((3, 2)), path_threshold=1.5)

@@ -56,3 +56,15 @@ def test_dataset_round_trips_through_netcdf(tmp_path):
     with xr.open_dataset(tmp_path / "ensemble.nc", engine="h5netcdf") as back:
         xr.testing.assert_identical(back.load(), ds)
     assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_damaged_files_are_named(tmp_path):
+    store = EnsembleStore(tmp_path, PLAN)
+    store.write("posterior", 2, {"phi": np.ones(1000)})
+    path = tmp_path / "posterior-00002.npz"
+    path.write_bytes(path.read_bytes()[:200])
+    with pytest.raises(ValueError, match=r"cannot read .*posterior-00002.npz as a stored realisation .*delete it"):
+        store.read("posterior", 2)
+    (tmp_path / "plan.json").write_text('{"seed": 0, "n_po')
+    with pytest.raises(ValueError, match=r"cannot read .*plan.json as the store's plan .*delete the store"):
+        EnsembleStore(tmp_path, PLAN)

@@ -117,3 +117,17 @@ def test_modes_table_and_mixed_modes():
     np.testing.assert_array_equal(modes(tree, mixed=True)["weight"], [0.8, 0.2])
     assert summary(tree, var_names=["a"]).attrs["modes"].shape == (2, 3)
     assert modes(build_tree({"posterior": draws()})) is None
+
+
+def test_load_names_a_truncated_or_foreign_file(tmp_path):
+    path = tmp_path / "fit.nc"
+    save(small_tree(), path)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError, match=r"cannot read .*fit.nc as a NetCDF result tree \(.*\): it is truncated"):
+        load(path)
+    path.write_bytes(b"not a netcdf file\n" * 10)
+    with pytest.raises(ValueError, match=r"cannot read .*fit.nc as a NetCDF result tree"):
+        load(path)
+    with pytest.raises(FileNotFoundError, match="no result file .*missing.nc: check the path"):
+        load(tmp_path / "missing.nc")

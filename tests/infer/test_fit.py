@@ -347,3 +347,48 @@ def test_scene_layout_constant_data_and_loo(plate):
     assert ll.dims == ("chain", "draw", "point", "component") and (ll[:, :, 1, 0] == 0).all()
     loo = az.loo(to_inference_data(tree), pointwise=True)
     assert np.isfinite(loo.elpd_loo) and loo.loo_i.size == y.numel()
+
+
+@pytest.mark.parametrize("method, settings, error, match", [
+    ("svi", {"num_samples": 0}, ValueError, "num_samples must be an integer >= 1, got 0: ask for at least one draw"),
+    ("nuts", {"num_samples": -5}, ValueError, "num_samples must be an integer >= 1, got -5"),
+    ("nuts", {"num_chains": 0}, ValueError, "num_chains must be an integer >= 1, got 0: run at least one chain"),
+    ("hmc", {"num_warmup": -1}, ValueError, "num_warmup must be an integer >= 0, got -1"),
+    ("nuts", {"num_chains": 2.0}, TypeError, r"num_chains must be an integer, got 2.0 \(float\)"),
+    ("svi", {"svi_steps": 0}, ValueError, "svi_steps must be an integer >= 1, got 0: take at least one"),
+    ("svi", {"svi_lr": -0.1}, ValueError, "svi_lr must be positive, got -0.1: pass a learning rate"),
+    ("svi", {"svi_lr": float("nan")}, ValueError, "svi_lr contains NaN or inf"),
+    ("svi", {"guide": "diag"}, ValueError, r"guide must be one of \('normal'"),
+    ("svi", {"init_values": {"mu": float("nan")}}, ValueError, r"init_values\['mu'\] contains NaN or inf"),
+])
+def test_bad_counts_and_rates_are_refused_before_sampling(y, method, settings, error, match):
+    with pytest.raises(error, match=match):
+        fit(model, {"y": y}, method, progress=False, **settings)
+
+
+def test_numpy_data_are_taken_as_tensors(y):
+    """y as a float64 numpy array gives the same (finite) draws as the tensor."""
+    kw = dict(svi_steps=20, num_samples=20, seed=1, progress=False)
+    a, b = fit(model, {"y": y.numpy()}, "svi", **kw), fit(model, {"y": y}, "svi", **kw)
+    assert np.isfinite(a["posterior"]["mu"].values).all()
+    np.testing.assert_array_equal(a["posterior"]["mu"].values, b["posterior"]["mu"].values)
+    with pytest.raises(TypeError, match=r"data\['y'\] is an array of <U1: pass numbers"):
+        fit(model, {"y": np.array(["a"] * N)}, "svi", **kw)
+
+
+def test_a_discrete_prior_is_refused(y):
+    def counting(y=None):
+        mu = pyro.sample("mu", dist.Poisson(3.0))
+        with pyro.plate("obs", N):
+            pyro.sample("y", dist.Normal(mu, 1.0), obs=y)
+    with pytest.raises(ValueError, match=r"mu has a discrete prior \(Poisson\).*continuous prior"):
+        fit(counting, {"y": y}, "nuts", progress=False)
+
+
+def test_a_diverging_learning_rate_is_named(plate):
+    """A huge svi_lr overflows the modulus the guide draws: reported as the optimiser
+    diverging (not as bad moduli), with the fix."""
+    scene, make, u = plate
+    with pytest.raises(ValueError, match=r"SVI diverged at step \d+ of 50 with svi_lr=1e\+06: .*"
+                                         r"lower svi_lr \(e.g. 100000\)"):
+        fit(make(), {"y": u}, "svi", svi_steps=50, svi_lr=1e6, num_samples=5, progress=False)
