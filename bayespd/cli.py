@@ -1,6 +1,6 @@
 """The ``bayespd`` command: calibrate a model, predict crack ensembles, summarise, demo.
 
-    bayespd calibrate MODEL.py --data DATA.npz --method nuts|svi|laplace|tikhonov --out DIR
+    bayespd calibrate MODEL.py --data DATA.npz --method nuts|svi|laplace|tikhonov --out DIR [--checkpoint CKPT]
     bayespd predict DIR --scene SCENE.py --n 200 [--scheduler ADDRESS]
     bayespd summary DIR
     bayespd demo [--out DIR]
@@ -16,7 +16,8 @@ Contracts (the files ``bayespd demo`` writes are examples of both):
 * SCENE.py defines ``fracture_scene()`` -> a ``bayespd.ensemble.scene.FractureScene``
   whose ``params`` are scalar posterior variables of DIR/posterior.nc.
 
-Outputs: DIR/posterior.nc (calibrate), DIR/ensemble/ (predict: one file per realisation,
+Outputs: DIR/posterior.nc (calibrate; with --checkpoint CKPT a killed NUTS calibration rerun with
+the same command resumes from CKPT/, and gives the uninterrupted run's draws), DIR/ensemble/ (predict: one file per realisation,
 ensemble.nc, PNG figures; a re-run resumes). Exit codes: 0 done, 2 usage (a missing file,
 a file without the expected function, bad options), 1 a failure while computing.
 """
@@ -25,6 +26,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import importlib.util
+import inspect
 import json
 import sys
 import tempfile
@@ -54,15 +56,25 @@ def load_module(path, name: str):
         raise UsageError(f"{path} is not a Python file (.py)")
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module
-    spec.loader.exec_module(module)
+    try:
+        spec.loader.exec_module(module)
+    except SyntaxError as e:
+        sys.modules.pop(name)
+        raise UsageError(f"{path} line {e.lineno}: {e.msg}: fix the Python syntax there") from None
     return module
 
 
-def _function(module, name: str, signature: str, path, role: str):
+def _function(module, name: str, signature: str, path, role: str, *args):
+    """``module.name``, which must take ``args`` (``signature`` in messages) and return ``role``."""
     f = getattr(module, name, None)
     if not callable(f):
         raise UsageError(f"{path} defines no function {signature}: add one that returns {role} "
                          "(see `bayespd calibrate --help` / `bayespd demo`)")
+    try:
+        inspect.signature(f).bind(*args)
+    except TypeError as e:
+        raise UsageError(f"{name}{inspect.signature(f)} in {path} cannot be called as {signature} ({e}): "
+                         f"define it as {signature}, returning {role}") from None
     return f
 
 
@@ -114,13 +126,36 @@ def _load_data(path) -> dict:
     path = _existing(path, "the data file")
     if path.suffix != ".npz":
         raise UsageError(f"--data must be a .npz file of arrays (y, and e.g. mask), not {path.name}")
-    with np.load(path) as f:
-        arrays = {k: f[k] for k in f.files}
+    try:
+        with np.load(path) as f:
+            arrays = {k: f[k] for k in f.files}
+    except Exception as e:  # not a zip, truncated, object arrays: numpy, zipfile and zlib raise many kinds
+        raise UsageError(f"{path} is not a readable .npz file of numeric arrays ({type(e).__name__}: {e}): "
+                         "write it again with np.savez(path, y=..., ...)") from None
     if "y" not in arrays:
         raise UsageError(f"{path} holds {sorted(arrays)} but no array 'y' (the observations): "
                          "save it as np.savez(path, y=..., ...)")
+    for k, v in arrays.items():
+        if v.dtype.kind not in "biuf":
+            raise UsageError(f"array {k!r} of {path} holds {v.dtype} values, not numbers or booleans: "
+                             "save it as a numeric (or boolean mask) array")
     return {k: torch.as_tensor(v) if v.dtype == bool else torch.as_tensor(v, dtype=torch.float64)
             for k, v in arrays.items()}
+
+
+def _check_keywords(model, data: dict, path) -> None:
+    """Refuse arrays of DATA.npz that ``model(**data)`` does not take."""
+    try:
+        parameters = inspect.signature(model).parameters.values()
+    except (TypeError, ValueError):  # a callable without a signature: its errors speak later
+        return
+    if any(p.kind is p.VAR_KEYWORD for p in parameters):
+        return
+    extra = sorted(set(data) - {p.name for p in parameters})
+    if extra:
+        raise UsageError(f"{path} holds {extra}, which the model does not take (it takes "
+                         f"{sorted(p.name for p in parameters)}): drop them from the file, or add them "
+                         "to the keywords of the function model(scene) returns")
 
 
 def calibrate(args) -> int:
@@ -129,13 +164,17 @@ def calibrate(args) -> int:
     module = load_module(_existing(args.model, "the model file"), "bayespd_user_model")
     scene = _function(module, "scene", "scene()", args.model, "a bayespd.Scene")()
     data = _load_data(args.data)
+    if args.checkpoint is not None and args.method != "nuts":
+        raise UsageError(f"--checkpoint saves NUTS chains: use it with --method nuts, not {args.method}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if args.method == "tikhonov":
         tree = _tikhonov(module, scene, data, args)
     else:
-        model = _function(module, "model", "model(scene)", args.model, "a Pyro model")(scene)
-        options = {"nuts": {"num_samples": args.samples, "num_warmup": args.warmup, "num_chains": args.chains},
+        model = _function(module, "model", "model(scene)", args.model, "a Pyro model", scene)(scene)
+        _check_keywords(model, data, args.data)
+        options = {"nuts": {"num_samples": args.samples, "num_warmup": args.warmup, "num_chains": args.chains,
+                            "checkpoint": args.checkpoint, "checkpoint_every": args.checkpoint_every},
                    "svi": {"num_samples": args.samples, "svi_steps": args.svi_steps},
                    "laplace": {"num_samples": args.samples}}[args.method]
         tree = fit(model, data, args.method, seed=args.seed, scene=scene, progress=not args.quiet, **options)
@@ -262,6 +301,20 @@ def demo(args) -> int:
     return 0
 
 
+def _count(minimum: int):
+    """An argparse type: an integer >= ``minimum``."""
+    def count(text):
+        try:
+            value = int(text)
+        except ValueError:
+            value = None
+        if value is None or value < minimum:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {minimum}, not {text!r}")
+        return value
+    count.__name__ = f"integer >= {minimum}"
+    return count
+
+
 def parser() -> argparse.ArgumentParser:
     top = argparse.ArgumentParser(prog="bayespd", description=__doc__.split("\n\n")[0],
                                   epilog=__doc__.split("\n\n", 2)[2], formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -273,10 +326,13 @@ def parser() -> argparse.ArgumentParser:
     c.add_argument("--data", required=True, metavar="DATA.npz", help="observations y (+ e.g. mask)")
     c.add_argument("--method", required=True, choices=METHODS)
     c.add_argument("--out", required=True, metavar="DIR", help="folder for posterior.nc")
-    c.add_argument("--samples", type=int, default=500, help="posterior draws (default 500)")
-    c.add_argument("--warmup", type=int, default=500, help="NUTS warm-up steps (default 500)")
-    c.add_argument("--chains", type=int, default=2, help="NUTS chains (default 2)")
-    c.add_argument("--svi-steps", type=int, default=2000, help="SVI optimisation steps (default 2000)")
+    c.add_argument("--samples", type=_count(1), default=500, help="posterior draws (default 500)")
+    c.add_argument("--warmup", type=_count(0), default=500, help="NUTS warm-up steps (default 500)")
+    c.add_argument("--chains", type=_count(1), default=2, help="NUTS chains (default 2)")
+    c.add_argument("--checkpoint", default=None, metavar="CKPT",
+                   help="NUTS: save the chains in folder CKPT as they go; the same command resumes a killed run")
+    c.add_argument("--checkpoint-every", type=_count(1), default=50, help="draws between checkpoint saves (default 50)")
+    c.add_argument("--svi-steps", type=_count(1), default=2000, help="SVI optimisation steps (default 2000)")
     c.add_argument("--seed", type=int, default=0)
     p = sub.add_parser("predict", help="posterior-predictive crack ensemble from DIR/posterior.nc",
                        description="Run the crack ensemble of SCENE.py (fracture_scene() -> FractureScene) at "

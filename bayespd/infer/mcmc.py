@@ -15,6 +15,12 @@ sequentially under ``"auto"`` and is refused under ``"processes"``. Each worker 
 ``cores // workers`` intra-op and BLAS threads and the parent's default dtype. Draws are bit-identical
 either way.
 
+**Faults** (``bayespd.infer.workers``). A script that runs chains in processes without an
+``if __name__ == "__main__":`` guard gets ``MainGuardError`` (its workers would re-run it);
+a chain whose worker is killed gets ``WorkerError`` naming the chain, after the other chains
+ended (with a checkpoint, a rerun then resumes it from its last file; without, at once);
+workers end with their parent.
+
 **Checkpoints.** With ``checkpoint=<dir>``, chain ``c`` writes ``<dir>/chain<c>.pt``
 (atomically) at the end of warmup, every ``checkpoint_every`` draws and at the end: the draws
 so far, their statistics, and the sampler state (position, adapted step size and inverse mass
@@ -23,15 +29,20 @@ API (``step_size``, ``inverse_mass_matrix``, ``initial_params``, ``setup``). A r
 loads finished chains without sampling and continues unfinished ones from their last file:
 the continued draws are bit-identical to an uninterrupted run's. A kill during warmup loses
 that chain's warmup (the adaptation's running averages are not saved); it restarts from its
-seed, so the result is still the same.
+seed, so the result is still the same. A checkpoint carries the run's fingerprint
+(``bayespd.infer.fingerprint``: kernel, its options, warmup, the chain's seed, the data, the
+model's sites and start, the mass matrix seed); a run with another is refused with
+``CheckpointMismatchError`` naming what differs. ``num_samples`` is not part of it: draw ``i``
+does not depend on how many follow, so a finished chain serves a run of fewer draws and
+continues for one of more.
 """
 
-import multiprocessing
+import math
 import os
 import pickle
 import random
 import threading
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -42,15 +53,53 @@ from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
 from bayespd.atomic import atomic_path
+from bayespd.validate import count, in_range, positive
 from bayespd.materials import ParameterRangeError
 from bayespd.linalg.sparse import NotPositiveDefiniteError
 
+from .fingerprint import run_fingerprint
 from .kernels import KERNELS
 from .space import max_plate_nesting
+from .workers import run_in_processes
 
 
 class ChainDivergedError(RuntimeError):
     """Every post-warmup transition of a chain diverged."""
+
+
+class CheckpointMismatchError(ValueError):
+    """A checkpoint directory holds the chains of another run."""
+
+
+SETTINGS = {  # sampler setting: its check (``bayespd.validate``), with the fix named
+    "checkpoint_every": lambda v: count("checkpoint_every", v, 1, "the draws between checkpoint writes, e.g. 50"),
+    "max_tree_depth": lambda v: count("max_tree_depth", v, 1, "NUTS's largest tree has 2**max_tree_depth - 1 "
+                                                              "leapfrog steps; 10 is usual"),
+    "target_accept": lambda v: in_range("target_accept", v, 0, 1, "the acceptance probability the step size "
+                                        "adapts to; 0.8 is usual, 0.95 for hard posteriors", closed=(False, False)),
+    "trajectory_length": lambda v: v is None or positive("trajectory_length", v, "HMC's integration time per "
+                                                         "draw: a finite number > 0, or None for 2 pi"),
+}
+
+
+def check_settings(**settings) -> None:
+    """Refuse a sampler setting (a keyword of ``SETTINGS``) outside its range (the counts
+    shared with other methods are checked by ``Method`` and ``Sampler``)."""
+    for name, value in settings.items():
+        SETTINGS[name](value)
+
+
+def check_mass_matrix_seed(covariance) -> None:
+    """Refuse an inverse mass matrix seed that is not a finite symmetric positive definite matrix."""
+    if covariance is None:
+        return
+    c = torch.as_tensor(covariance, dtype=torch.float64)
+    smallest = float(torch.linalg.eigvalsh(c).min()) if c.isfinite().all() and torch.equal(c, c.T) else math.nan
+    if not smallest > 0:
+        raise ValueError(
+            f"mass_matrix_from gives an inverse mass matrix (the covariance of its draws) that is not "
+            f"finite, symmetric and positive definite (smallest eigenvalue {smallest:.3g}): give a fit "
+            "whose draws vary in every latent site, or mass_matrix_from='laplace'")
 
 
 @dataclass
@@ -69,10 +118,15 @@ class ChainSpec:
     progress: bool = True
     checkpoint: Path | None = None
     checkpoint_every: int = 50
+    fingerprint: dict | None = None  # the run's (``run_fingerprint``), set by ``run_chains`` to checkpoint
 
 
-def _fingerprint(spec, chain):
-    return f"{spec.kernel} warmup={spec.num_warmup} seed={spec.seed + chain} options={sorted(spec.options.items())}"
+SHOWN = ("kernel", "num_warmup", "seed", "options")  # fingerprint entries shown by value, the others are hashes
+
+
+def _fingerprint(spec, chain) -> dict:
+    return {"kernel": spec.kernel, "num_warmup": spec.num_warmup, "seed": spec.seed + chain,
+            "options": repr(sorted(spec.options.items())), **spec.fingerprint}
 
 
 def _rng_state():
@@ -107,9 +161,19 @@ def _load(path, fingerprint):
         return None
     state = torch.load(path, weights_only=True)
     if state["fingerprint"] != fingerprint:
-        raise ValueError(f"checkpoint {path} belongs to another run ({state['fingerprint']}; this "
-                         f"run is {fingerprint}): use another checkpoint directory or delete it")
+        raise CheckpointMismatchError(
+            f"checkpoint {path} belongs to another run: {_differences(state['fingerprint'], fingerprint)} "
+            f"differ(s). Use another checkpoint directory for this run, or delete {path.parent} to "
+            "start this one afresh there")
     return state
+
+
+def _differences(saved, now) -> str:
+    if not isinstance(saved, dict):
+        return "all settings (it was written by an older bayespd)"
+    keys = [*now, *(k for k in saved if k not in now)]
+    return ", ".join(f"{k} ({saved.get(k)} there, {now.get(k)} here)" if k in SHOWN else k
+                     for k in keys if saved.get(k) != now.get(k))
 
 
 def _kernel(spec: ChainSpec, state):
@@ -145,9 +209,9 @@ def run_chain(spec: ChainSpec, chain: int, position: int = 0) -> dict:
         warn_on_overwrite=False,
     )
     path = None if spec.checkpoint is None else spec.checkpoint / f"chain{chain}.pt"
-    fingerprint = _fingerprint(spec, chain)
+    fingerprint = None if path is None else _fingerprint(spec, chain)
     state = None if path is None else _load(path, fingerprint)
-    if state is not None and len(next(iter(state["draws"].values()), [])) >= spec.num_samples > 0:
+    if state is not None and len(next(iter(state["draws"].values()), [])) >= spec.num_samples:
         return _result({k: v[:spec.num_samples] for k, v in state["draws"].items()},
                        {k: v[:spec.num_samples] for k, v in state["stats"].items()},
                        state["num_grad_evals"], chain)
@@ -196,8 +260,7 @@ def _result(draws, stats, grad_evals, chain):
             "stats": {k: np.asarray(v) for k, v in stats.items()}, "grad_evals": grad_evals}
 
 
-def _worker(args):
-    payload, chain, threads, dtype = args
+def _worker(payload, chain, threads, dtype):
     torch.set_num_threads(threads)
     torch.set_default_dtype(dtype)
     tqdm.set_lock(threading.RLock())  # tqdm's default lock makes semaphores nobody releases
@@ -216,13 +279,34 @@ def _pickled(spec):
         return None
 
 
+def _chain_died(spec):
+    """The message of a chain whose worker process died: how a rerun resumes it."""
+    def message(chain, how):
+        if spec.checkpoint is None:
+            return (f"the worker process of chain {chain} {how}: its draws are lost (pass checkpoint=DIR to make "
+                    "a rerun resume killed chains), run the fit again")
+        return (f"the worker process of chain {chain} {how}; the other chains ran to their end. Its checkpoint "
+                f"{spec.checkpoint / f'chain{chain}.pt'} keeps its draws up to the last save: run the "
+                "same fit again to resume it (the draws are the same as an uninterrupted run's)")
+    return message
+
+
+def _in_processes(spec, num_chains, workers, payload):
+    jobs = [(payload, c, max(1, usable_cores() // workers), torch.get_default_dtype()) for c in range(num_chains)]
+    return run_in_processes(_worker, jobs, workers, [f"chain {c}" for c in range(num_chains)],
+                            _chain_died(spec), finish_others=spec.checkpoint is not None)
+
+
 def run_chains(spec: ChainSpec, num_chains: int, chains="auto") -> tuple[dict, dict, int]:
     """All chains; ``chains`` is ``"auto"``, ``"sequential"`` or ``"processes"``.
     Returns ``(draws, stats, grad_evals)`` with arrays shaped ``(chain, draw, ...)``."""
     if chains not in ("auto", "sequential", "processes"):
         raise ValueError(f"chains must be 'auto', 'sequential' or 'processes', not {chains!r}")
+    check_mass_matrix_seed(spec.seed_covariance)
     if spec.checkpoint is not None:
         spec.checkpoint.mkdir(parents=True, exist_ok=True)
+        spec = replace(spec, fingerprint=run_fingerprint(spec.model, spec.data, spec.init, spec.seed,
+                                                         spec.seed_covariance))
     workers = min(num_chains, usable_cores())
     payload = _pickled(spec) if chains == "processes" or (chains == "auto" and workers >= 2) else None
     if chains == "processes" and payload is None:
@@ -230,10 +314,7 @@ def run_chains(spec: ChainSpec, num_chains: int, chains="auto") -> tuple[dict, d
                          "this model does not pickle (a closure?): define it at module level "
                          "or use chains='sequential'")
     if payload is not None:
-        jobs = [(payload, c, max(1, usable_cores() // workers), torch.get_default_dtype())
-                for c in range(num_chains)]
-        with multiprocessing.get_context("spawn").Pool(workers) as pool:
-            results = pool.map(_worker, jobs)
+        results = _in_processes(spec, num_chains, workers, payload)
     else:
         results = [run_chain(spec, c) for c in range(num_chains)]
     draws = {k: np.stack([r["draws"][k] for r in results]) for k in results[0]["draws"]}

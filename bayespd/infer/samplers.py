@@ -11,7 +11,7 @@ from bayespd.validate import count
 
 from . import laplace as _laplace
 from .laplace import NotPositiveDefiniteHessian
-from .mcmc import ChainSpec, run_chains
+from .mcmc import SETTINGS, ChainSpec, check_settings, run_chains
 from .method import Draws, Method
 from .mixture import allocate, cell_log_masses, cells, merged, mode_weights, stratified
 from .space import Unconstrained
@@ -23,7 +23,7 @@ def unconstrained_covariance(model, data, tree) -> torch.Tensor:
     space = Unconstrained(model, data, init_to_median)
     post = tree["posterior"]
     draws = {k: torch.as_tensor(post[k].values).reshape(-1, *space.shapes[k]) for k in space.names}
-    return torch.cov(space.unconstrain(draws).T)
+    return torch.atleast_2d(torch.cov(space.unconstrain(draws).T))  # one latent value: cov is 0-d
 
 
 @dataclass(frozen=True)
@@ -58,6 +58,7 @@ class Sampler(Method):
         super().__post_init__()
         count("num_chains", self.num_chains, 1, "run at least one chain (4 to check convergence)")
         count("num_warmup", self.num_warmup, 0, "use 0 to skip warm-up (e.g. with a seeded mass matrix)")
+        check_settings(**{k: getattr(self, k) for k in SETTINGS if hasattr(self, k)})
         if not self.adapt_mass and self.mass_matrix_from is None:
             raise ValueError("adapt_mass=False keeps a seeded mass matrix: give mass_matrix_from "
                              "('laplace' or a DataTree), or leave adaptation on")
@@ -67,6 +68,11 @@ class Sampler(Method):
     def record(self) -> dict:
         source = self.mass_matrix_from
         return {**super().record(), "mass_matrix_from": source if source is None or isinstance(source, str) else "tree"}
+
+    @property
+    def seeds_from_laplace(self) -> bool:
+        """``mass_matrix_from="laplace"`` (not ``==``: a DataTree compares elementwise, and truthy)."""
+        return isinstance(self.mass_matrix_from, str)
 
     def kernel_options(self) -> dict:
         """Keyword arguments of the Pyro kernel."""
@@ -78,7 +84,7 @@ class Sampler(Method):
                       else unconstrained_covariance(model, data, self.mass_matrix_from))
         if search.weighted:
             return self._at_every_mode(model, data, init, covariance, search)
-        if self.mass_matrix_from == "laplace":
+        if self.seeds_from_laplace:
             space, gaussian, info = _laplace.laplace(model, data, init, self.observed, "exact", self.progress,
                                                      search.starts, self.seed)
             search.modes, covariance = info["map_modes"], gaussian.covariance
@@ -107,7 +113,7 @@ class Sampler(Method):
                       for (z, _, _, h), m in zip(fitted, laplace_masses)]  # on a kink: the nearest one's
         runs = []
         for j, ((z, *_), h) in enumerate(zip(fitted, precisions)):
-            covariance = (_laplace.Gaussian(z, h, space.labels).covariance if self.mass_matrix_from == "laplace"
+            covariance = (_laplace.Gaussian(z, h, space.labels).covariance if self.seeds_from_laplace
                           else tree_covariance)
             folder = None if self.checkpoint is None else Path(self.checkpoint) / f"mode{j}"
             runs.append(self._chains(model, data, _laplace.init_at(space, z), covariance, j * self.num_chains, folder))
