@@ -166,7 +166,7 @@ def main(quick: bool, seed: int):
                      "delta_max": demo.DELTA_MAX, "rule": RULE, "map_starts": MAP_STARTS, "n_points": len(points), "n_particles": coarse.particles.n,
                      "noise": "1 % of max |u|", "discrepancy": TERM, "features": "(log(G / K), delta)",
                      "discrepancy_draws": TERM_DRAWS, "design": "scrambled Sobol (module docstring)"},
-        "reduced_model": {"build_wall_time_s": rom_wall, "snapshots": SNAPSHOTS,
+        "reduced_model": {"build_wall_time_s": rom_wall, "prior_draws": SNAPSHOTS,
                           **{k: v for k, v in reduced.report.items() if k != "singular_values"}},
         "discrepancy": {"estimate_wall_time_s": term_wall, "rank": term.rank, "rms_relative": term.rms,
                         "leave_one_out_rms_relative": math.sqrt(float(term.covariance().trace()) / term.mean.numel()),
