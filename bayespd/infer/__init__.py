@@ -1,7 +1,7 @@
 """Bayesian inference (Pyro): NUTS / HMC / SVI / Laplace fits stored as ArviZ-style ``xarray.DataTree``."""
 
 from .checks import check_priors
-from .correction import UnreliableCorrectionError, corrected_summary, importance_correction
+from .correction import UnreliableCorrectionError, corrected_summary, importance_correction, laplace_importance
 from .datatree import load, modes, save, summary, to_inference_data
 from .fit import METHODS, fit, register
 from .laplace import Laplace, NotPositiveDefiniteHessian
@@ -15,5 +15,5 @@ from .svi import SVI
 __all__ = ["fit", "NUTS", "HMC", "SVI", "Laplace", "Method", "Draws", "METHODS", "register",
            "to_inference_data", "save", "load", "summary", "modes", "ScaledBeta", "check_priors",
            "NotPositiveDefiniteHessian", "ChainDivergedError", "NoiseCovariance", "StationaryMarginal",
-           "euler_maruyama_transition", "importance_correction", "corrected_summary",
+           "euler_maruyama_transition", "importance_correction", "corrected_summary", "laplace_importance",
            "UnreliableCorrectionError"]

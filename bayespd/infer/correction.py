@@ -23,10 +23,13 @@ import pandas as pd
 import torch
 import xarray as xr
 from pyro import poutine
+from pyro.infer.autoguide.initialization import init_to_median
 from pyro.poutine.condition_messenger import ConditionMessenger
 from pyro.poutine.util import site_is_subsample
 from scipy.special import logsumexp
 from tqdm.auto import tqdm
+
+from .space import Unconstrained
 
 GROUP = "importance"
 K_MAX = 0.7  # Vehtari et al. (2024): beyond it the estimates are unreliable whatever the draws
@@ -107,7 +110,6 @@ def importance_correction(tree: xr.DataTree, approximate, exact, data: dict, num
             if s == 0:
                 _check_same_sites(sites)
 
-    log_ratio = log_joint["exact"] - log_joint["approximate"]
     bad = ~np.isfinite(log_joint["approximate"]) | np.isnan(log_joint["exact"]) | (log_joint["exact"] == np.inf)
     if bad.any() or np.all(log_joint["exact"] == -np.inf):
         s = int(np.flatnonzero(bad)[0]) if bad.any() else 0
@@ -116,6 +118,57 @@ def importance_correction(tree: xr.DataTree, approximate, exact, data: dict, num
             f"{log_joint['approximate'][s]}, exact {log_joint['exact'][s]}): the approximate one must be finite "
             "at its own draws (is the tree a fit of `approximate` to these data?), the exact one finite or "
             "-inf, and finite somewhere")
+    names = sorted(sites["approximate"])
+    group = _weighted_group(xr.Dataset({name: posterior[name].isel(index) for name in names}), log_joint["exact"],
+                            log_joint["approximate"])
+    group.attrs.update(wall_time_s=time.perf_counter() - start, exact_wall_time_s=seconds["exact"],
+                       approximate_wall_time_s=seconds["approximate"])
+    out = tree.copy()
+    out[GROUP] = xr.DataTree(group)
+    return out
+
+
+def laplace_importance(tree: xr.DataTree, model, data: dict) -> xr.DataTree:
+    """``tree`` (a ``method="laplace"`` fit of ``model`` to ``data``) plus the group ``importance``
+    of :func:`importance_correction`: its draws reweighted to the exact posterior by PSIS with
+    the Laplace Gaussian q as the proposal, ``log w = -U(z) - log q(z)`` on Pyro's unconstrained
+    space (U: the potential, Jacobians included; Vehtari et al. 2024, sec. 2: PSIS corrects a
+    Gaussian approximation, and its k says whether it may). Every draw is used: one model
+    evaluation each. Here ``log_joint_exact`` is -U and ``log_joint_approximate`` log q."""
+    stats = tree["sample_stats"].to_dataset() if "sample_stats" in tree.children else xr.Dataset()
+    if "mode_unconstrained" not in stats or "covariance_unconstrained" not in stats:
+        raise ValueError("laplace_importance needs a fit with method='laplace' (its sample_stats hold the mode "
+                         "and covariance on the unconstrained space)")
+    posterior = tree["posterior"].to_dataset()
+    start = time.perf_counter()
+    space = Unconstrained(model, data, init_to_median)
+    if space.labels != [str(v) for v in stats["unconstrained"].values]:
+        raise ValueError(f"the model's unconstrained coordinates {space.labels} are not the fit's "
+                         f"{list(stats['unconstrained'].values)}: pass the model the tree was fitted with")
+    flat = posterior.stack(sample=("chain", "draw")).transpose("sample", ...)
+    z = space.unconstrain({k: torch.as_tensor(flat[k].values) for k in space.names})
+    proposal = torch.distributions.MultivariateNormal(
+        torch.as_tensor(stats["mode_unconstrained"].values), torch.as_tensor(stats["covariance_unconstrained"].values))
+    with torch.no_grad():
+        log_target = np.array([-float(space.potential(row)) for row in z])
+        log_proposal = proposal.log_prob(z).numpy()
+    if not np.isfinite(log_proposal).all() or np.isnan(log_target).any() or (log_target == np.inf).any():
+        raise ValueError("the Laplace draws give non-finite densities: is the tree a Laplace fit of this model "
+                         "to these data?")
+    values = xr.Dataset({k: (("sample", *flat[k].dims[1:]), flat[k].values) for k in space.names})
+    group = _weighted_group(values, log_target, log_proposal)
+    group.attrs["wall_time_s"] = time.perf_counter() - start
+    out = tree.copy()
+    out[GROUP] = xr.DataTree(group)
+    return out
+
+
+def _weighted_group(values: xr.Dataset, log_target: np.ndarray, log_proposal: np.ndarray) -> xr.Dataset:
+    """``values`` (over ``sample``) with the raw and PSIS-smoothed log weights of target over
+    proposal, the ``corrected_*`` statistics (NaN when k > 0.7) and the attributes ``pareto_k``,
+    ``ess``, ``num_draws``, ``reliable``, ``pareto_k_max``."""
+    log_ratio = log_target - log_proposal
+    num_draws = len(log_ratio)
     log_raw = log_ratio - logsumexp(log_ratio)
     if np.ptp(log_ratio) <= AGREE:  # the models differ by a constant: uniform weights, nothing to fit
         log_psis, k = log_raw, -math.inf
@@ -123,27 +176,21 @@ def importance_correction(tree: xr.DataTree, approximate, exact, data: dict, num
         log_psis, k = az.psislw(log_ratio, reff=1.0)
         k = float(k)
     weights = np.exp(log_psis)
-    ess = float(1.0 / np.sum(weights**2))
     reliable = bool(k <= K_MAX)
     _warn(k, num_draws)
-
-    names = sorted(sites["approximate"])
-    group = xr.Dataset({name: posterior[name].isel(index) for name in names})
-    group["log_joint_exact"] = ("sample", log_joint["exact"])
-    group["log_joint_approximate"] = ("sample", log_joint["approximate"])
+    group = values.copy()
+    group["log_joint_exact"] = ("sample", log_target)
+    group["log_joint_approximate"] = ("sample", log_proposal)
     group["log_weight_raw"] = ("sample", log_raw)
     group["log_weight_psis"] = ("sample", log_psis)
-    for name in names:
+    for name in values.data_vars:
         stats = _weighted_statistics(group[name].values, weights)
         group[f"corrected_{name}"] = (("statistic", *group[name].dims[1:]),
                                       stats if reliable else np.full_like(stats, np.nan))
     group = group.assign_coords(sample=np.arange(num_draws), statistic=list(STATISTICS))
-    group.attrs = {"pareto_k": k, "ess": ess, "num_draws": int(num_draws), "reliable": int(reliable),
-                   "pareto_k_max": K_MAX, "wall_time_s": time.perf_counter() - start,
-                   "exact_wall_time_s": seconds["exact"], "approximate_wall_time_s": seconds["approximate"]}
-    out = tree.copy()
-    out[GROUP] = xr.DataTree(group)
-    return out
+    group.attrs = {"pareto_k": k, "ess": float(1.0 / np.sum(weights**2)), "num_draws": int(num_draws),
+                   "reliable": int(reliable), "pareto_k_max": K_MAX}
+    return group
 
 
 def corrected_summary(tree: xr.DataTree) -> pd.DataFrame:

@@ -16,7 +16,7 @@ from scipy.special import logsumexp
 
 from bayespd.infer import (UnreliableCorrectionError, corrected_summary, fit, importance_correction, load,
                            save, summary)
-from bayespd.infer.correction import _warn
+from bayespd.infer.correction import _warn, laplace_importance
 from bayespd.infer.datatree import build_tree
 from tests.infer.test_fit import float64_single_thread  # noqa: F401 (autouse)
 
@@ -228,3 +228,28 @@ def test_a_nuts_fit_of_the_approximate_model_corrected_by_the_exact_one():
     assert group.attrs["pareto_k"] < 0.5
     assert abs(float(group["corrected_theta"].sel(statistic="mean")) - mean) < 4 * sd / math.sqrt(group.attrs["ess"])
     np.testing.assert_allclose(group["log_joint_exact"], log_joint(group["theta"].values, **EXACT), rtol=1e-12)
+
+
+def test_laplace_importance_recovers_a_skewed_posterior():
+    """lam ~ Gamma(1.5, 1), y = (0, 1) ~ Poisson(lam): the posterior is Gamma(2.5, 3), skewed, and
+    the Laplace Gaussian on log lam misplaces it (mean 1.01 against 0.833, 18 MCSE). Reweighted
+    by laplace_importance (4000 draws, k <= 0.7): the mean within 4 MCSE of 2.5 / 3, and the
+    exact CDF at the weighted 5 / 95 % quantiles within 0.02 of 0.05 / 0.95 (5 binomial sd at the
+    ESS ~3000), where the Laplace quantiles are off by more than 0.05."""
+    y = torch.tensor([0.0, 1.0])
+
+    def model(y=None):
+        lam = pyro.sample("lam", dist.Gamma(1.5, 1.0))
+        with pyro.plate("n", 2):
+            pyro.sample("y", dist.Poisson(lam), obs=y)
+
+    tree = fit(model, {"y": y}, "laplace", num_samples=4000, seed=0, progress=False)
+    table = corrected_summary(laplace_importance(tree, model, {"y": y}))
+    exact = stats.gamma(2.5, scale=1 / 3)
+    assert table.attrs["pareto_k"] <= 0.7
+    assert abs(table.loc["lam", "mean"] - exact.mean()) < 4 * table.loc["lam", "mcse_mean"]
+    np.testing.assert_allclose(exact.cdf(table.loc["lam", ["q05", "q95"]].to_numpy(float)), [0.05, 0.95], atol=0.02)
+    laplace = np.quantile(tree["posterior"]["lam"].values, [0.05, 0.95])
+    assert np.abs(exact.cdf(laplace) - [0.05, 0.95]).max() > 0.05
+    with pytest.raises(ValueError, match="needs a fit with method='laplace'"):
+        laplace_importance(tree.copy().drop_nodes("sample_stats"), model, {"y": y})
