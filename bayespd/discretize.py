@@ -37,6 +37,10 @@ class Particles:
                              "degenerate cells")
         positive("the particle spacing h", self.h)
         positive("the thickness", self.thickness)
+        if np.abs(self.x).max() > COORDINATE_LIMIT or not COORDINATE_LIMIT ** -1 <= self.h <= COORDINATE_LIMIT:
+            raise ValueError(f"particle positions (largest |x| {np.abs(self.x).max():g}) or the spacing "
+                             f"h={self.h:g} lie beyond 1e{np.log10(COORDINATE_LIMIT):.0f} (or h below its "
+                             "inverse): squared distances overflow float64; rescale the units")
         _refuse_duplicates(self.x, self.h)
 
     @property
@@ -90,6 +94,9 @@ class Particles:
         if mask.shape != (self.n,):
             raise ValueError("predicate must return one boolean per particle")
         return mask
+
+
+COORDINATE_LIMIT = 1e100  # squared bond lengths and volumes h^dim stay inside float64
 
 
 def _refuse_duplicates(x: np.ndarray, h: float) -> None:

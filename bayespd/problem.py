@@ -187,8 +187,16 @@ class Scene:
         return solve_form(self._form, self._factor(p), rhs, [p[k] for k in self.param_names])
 
     def solve(self, params: dict) -> torch.Tensor:
-        """Displacement (N, dim) at equilibrium; differentiable (twice) in every param."""
-        return self.constraints.expand(self.solve_free(params, self.free_load(params)))
+        """Displacement (N, dim) at equilibrium; differentiable (twice) in every param. Finite
+        inputs whose displacement overflows float64 (|f| / K near 1e308) raise
+        ``NonFiniteParameterError`` (a rejected proposal to the samplers), never return inf."""
+        u = self.constraints.expand(self.solve_free(params, self.free_load(params)))
+        if not bool(torch.isfinite(u.detach()).all()):
+            raise NonFiniteParameterError(
+                "the displacement overflowed to NaN or inf although every input is finite: the load, "
+                "the load factor params['load'] or a Dirichlet value is too large for the moduli "
+                "(|u| ~ |f| / K beyond 1e308); rescale the units")
+        return u
 
     def observation_matrix(self) -> torch.Tensor:
         """H on the free dofs as a sparse COO (n_points * dim, n_free) tensor: the observed

@@ -8,12 +8,17 @@ from torch.distributions import constraints
 
 
 def as_tensors(data) -> dict:
-    """``data`` with its numpy arrays as torch tensors (floats in the default dtype), so a
+    """``data`` with its numpy arrays, lists and tuples as torch tensors (floats in the default dtype), so a
     model gets what Pyro takes; arrays of strings or objects are refused."""
     if not isinstance(data, dict):
         raise TypeError(f"data must be a dict of the model's keyword arguments, not {type(data).__name__}")
     out = dict(data)
     for k, v in data.items():
+        if isinstance(v, (list, tuple)):
+            try:
+                v = np.asarray(v)
+            except ValueError as error:  # ragged
+                raise TypeError(f"data[{k!r}] is a ragged {type(v).__name__}: pass an array or tensor") from error
         if isinstance(v, np.ndarray):
             if v.dtype.kind not in "biuf":
                 raise TypeError(f"data[{k!r}] is an array of {v.dtype}: pass numbers (or booleans for a mask)")

@@ -18,6 +18,9 @@ def moduli_from_young(E, nu):
     return E / (3 * (1 - 2 * nu)), E / (2 * (1 + nu))
 
 
+MODULUS_RANGE = (1e-100, 1e100)  # LPS solves lose every digit below ~1e-160; K ~ 1e200 overflows
+
+
 class ParameterRangeError(ValueError):
     """A modulus outside (0, inf): bad input, or a sampler's or optimiser's trial point that
     over- or underflowed (which the inference code treats as a rejected proposal)."""
@@ -37,4 +40,9 @@ def check_modulus(name: str, value, n: int) -> torch.Tensor:
     if not bool(torch.all(v > 0)):
         raise ParameterRangeError(f"{name} must be positive (got min {float(v.min()):g}): moduli "
                          "are positive; sample them on a log scale")
+    if not bool(torch.all((v >= MODULUS_RANGE[0]) & (v <= MODULUS_RANGE[1]))):
+        extreme = float(v.max()) if bool(torch.any(v > MODULUS_RANGE[1])) else float(v.min())
+        raise ParameterRangeError(f"{name}={extreme:g} lies outside [{MODULUS_RANGE[0]:g}, {MODULUS_RANGE[1]:g}]: "
+                                  "the stiffness products under- or overflow float64 there; rescale the "
+                                  "units (moduli in MPa or GPa are of order 1 to 1e6)")
     return v
