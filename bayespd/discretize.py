@@ -112,6 +112,9 @@ def _cell_centres(extent, h: float, origin) -> np.ndarray:
     """Centres of a regular grid of cubic cells of size h filling a box of the given extent."""
     positive("h", h)
     positive("the box extents", list(extent))
+    if any(e / h > 1e7 for e in extent):
+        raise ValueError(f"h={h:g} cuts the box {list(extent)} into more than 1e7 cells along an axis: "
+                         "check the units of h and the extents")
     counts = [round(e / h) for e in extent]
     if any(abs(c * h - e) > 1e-9 * e for c, e in zip(counts, extent)):
         raise ValueError(f"every extent of the box must be a multiple of h={h}")
@@ -122,6 +125,7 @@ def _cell_centres(extent, h: float, origin) -> np.ndarray:
 def grid_2d(length: float, width: float, h: float, thickness: float = 1.0,
             origin=(0.0, 0.0)) -> Particles:
     """Cell-centred regular grid filling [0, length] x [0, width] (shifted by ``origin``)."""
+    positive("the thickness", thickness)
     x = _cell_centres((length, width), h, origin)
     return Particles(x, np.full(len(x), h * h * thickness), h, thickness)
 

@@ -74,7 +74,7 @@ class Scene:
         self.solver, self.rtol = solver, rtol
         direct = solver == "direct"
         self.constraints = Constraints(p, material.pattern if direct else None, self.dirichlet)
-        if not self.loads and not self.constraints.has_prescribed:
+        if not any(bool(load.force.ne(0).any()) for load in self.loads) and not self.constraints.has_prescribed:
             raise ValueError("a scene needs a Load or a Dirichlet region with a non-zero value "
                              "(displacement control): nothing loads this one")
         # PCG: K is never assembled; the preconditioner keeps the bonds with
@@ -119,7 +119,11 @@ class Scene:
         if "load" in params:
             finite("the load factor params['load']", params["load"], "pass a finite load factor",
                    NonFiniteParameterError)
-        return {k: torch.as_tensor(v) for k, v in params.items()}
+        try:
+            return {k: torch.as_tensor(v) for k, v in params.items()}
+        except (TypeError, ValueError, RuntimeError) as error:
+            bad = next(k for k, v in params.items() if not isinstance(v, (int, float, torch.Tensor, np.ndarray)))
+            raise TypeError(f"params[{bad!r}] must be a number or a tensor of numbers, got {params[bad]!r}") from error
 
     def _form(self, v_free, u_free, *theta):
         """v^T A u on the free dofs (A = K_ff + eps I), as a function of the parameters in

@@ -1,5 +1,6 @@
 """Refuse bad input before any sampling, with messages that name the fix."""
 
+import inspect
 import math
 
 import numpy as np
@@ -24,6 +25,19 @@ def as_tensors(data) -> dict:
                 raise TypeError(f"data[{k!r}] is an array of {v.dtype}: pass numbers (or booleans for a mask)")
             out[k] = torch.as_tensor(v, dtype=torch.get_default_dtype() if v.dtype.kind == "f" else None)
     return out
+
+
+def check_arguments(model, data: dict) -> None:
+    """Every key of ``data`` is an argument the model takes (when its signature is known)."""
+    try:
+        signature = inspect.signature(model)
+    except (TypeError, ValueError):  # no signature: its own errors speak
+        return
+    try:
+        signature.bind_partial(**data)
+    except TypeError as error:
+        raise TypeError(f"data keys {sorted(data)} do not fit the model's arguments {signature} ({error}): "
+                        "pass only the model's keyword arguments") from None
 
 
 def check_continuous(priors: dict) -> None:

@@ -32,7 +32,10 @@ class NonFiniteParameterError(ParameterRangeError):
 
 def check_modulus(name: str, value, n: int) -> torch.Tensor:
     """A modulus as a tensor broadcastable to (n,); refuse NaN, inf and non-positive values."""
-    v = torch.as_tensor(value)
+    try:
+        v = torch.as_tensor(value)
+    except (TypeError, ValueError, RuntimeError) as error:
+        raise TypeError(f"{name} must be a number or a tensor of numbers, got {value!r}") from error
     if v.dim() > 1 or (v.dim() == 1 and v.shape[0] != n):
         raise ValueError(f"{name} must be a scalar or have one value per particle ({n})")
     if not bool(torch.all(torch.isfinite(v))):

@@ -120,3 +120,13 @@ def test_lists_become_tensors_and_an_unreachable_start_names_the_site():
     assert tree["posterior"]["mu"].shape == (1, 5)
     with pytest.raises(ValueError, match="log density is not finite at any start .*'y'.*check the data"):
         fit(model, {"y": [0.1, 1e300, 0.3]}, "laplace", num_samples=5, progress=False)
+
+
+def test_data_keys_the_model_does_not_take_are_named():
+    from bayespd.infer import fit
+
+    def model(y):
+        pyro.sample("y", dist.Normal(pyro.sample("mu", dist.Normal(0.0, 1.0)), 1.0), obs=y)
+
+    with pytest.raises(TypeError, match=r"data keys \['y', 'z'\] do not fit the model's arguments \(y\)"):
+        fit(model, {"y": torch.tensor(0.1), "z": 1.0}, "laplace", num_samples=5, progress=False)
