@@ -613,7 +613,7 @@ def cli_cases():
     add("cli summary of garbage posterior", "cli", cli_case("summary", lambda: _garbage_dir()), "posterior.nc")
     add("cli predict without scene file", "cli", cli_case("predict", lambda: _laplace_dir(), "--scene", TMP / "noscene.py"),
         "noscene.py", timeout=240)
-    add("cli predict without posterior", "cli", cli_case("predict", TMP / "nothing", "--scene", TMP / "noscene.py"), "posterior.nc")
+    add("cli predict without posterior", "cli", cli_case("predict", TMP / "nothing", "--scene", TMP / "noscene.py"), "nothing")
     add("cli predict bad device", "cli", cli_case("predict", lambda: _laplace_dir(), "--scene", lambda: _scene_file(), "--n", "2",
                                                   "--device", "gpu"), "device", timeout=240)
     add("cli predict n=0", "cli", cli_case("predict", lambda: _laplace_dir(), "--scene", lambda: _scene_file(), "--n", "0"),
@@ -641,9 +641,17 @@ def _garbage_dir():
 
 
 def _cli_posterior(r):
-    from bayespd.infer import load
+    """The CLI's Laplace posterior is the API's (same model, data and seed), finite; with noise as
+    large as the signal (sigma 1e-3) the truth K = 3000 lies inside its 99.9 % interval."""
+    from bayespd.infer import fit, load
     K = load(TMP / "cli-out" / "posterior.nc")["posterior"]["K"].values
-    return bool(np.isfinite(K).all()) and abs(np.median(K) / 3000 - 1) < 0.1, f"median K {np.median(K):.0f} (true 3000)"
+    space = {}
+    exec(TINY_MODEL, space)
+    y = torch.as_tensor(np.load(tiny() / "data.npz")["y"])
+    api = fit(space["model"](space["scene"]()), {"y": y}, "laplace", num_samples=50, progress=False)["posterior"]["K"].values
+    lo, hi = np.quantile(K, [0.0005, 0.9995])
+    ok = bool(np.isfinite(K).all()) and abs(np.median(K) / np.median(api) - 1) < 1e-6 and lo < 3000 < hi
+    return ok, f"median K {np.median(K):.0f} (API {np.median(api):.0f}), 99.9% interval [{lo:.0f}, {hi:.0f}] holds 3000"
 
 
 def _laplace_dir():
