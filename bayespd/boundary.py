@@ -42,12 +42,14 @@ class Load:
         self.mask = np.asarray(mask, dtype=bool)
         if not self.mask.any():
             raise ValueError("the load region is empty: check the mask or layer depth")
-        self.force = finite("the load", torch.as_tensor(force), "pass a finite force")
+        self.force = torch.as_tensor(finite("the load", force, "pass a finite force"), dtype=torch.get_default_dtype())
 
     def nodal(self, particles: Particles) -> torch.Tensor:
         """Nodal forces (N, dim): F * V_i / sum V over the region."""
         if self.force.shape != (particles.dim,):
             raise ValueError(f"force must have {particles.dim} components")
+        if self.mask.shape != (particles.n,):
+            raise ValueError(f"the load region's mask has shape {self.mask.shape}, not one entry per particle ({particles.n})")
         w = torch.as_tensor(np.where(self.mask, particles.volume, 0.0))
         return (w / w.sum())[:, None] * self.force
 
@@ -60,6 +62,8 @@ class Constraints:
         fixed = np.zeros((n, dim), dtype=bool)
         prescribed = np.zeros((n, dim))
         for bc in dirichlet:
+            if bc.mask.shape != (n,):
+                raise ValueError(f"the Dirichlet region's mask has shape {bc.mask.shape}, not one entry per particle ({n})")
             if len(bc.value) != dim:
                 raise ValueError(f"Dirichlet value needs {dim} components (None = free)")
             for c, v in enumerate(bc.value):

@@ -61,6 +61,10 @@ def load_module(path, name: str):
     except SyntaxError as e:
         sys.modules.pop(name)
         raise UsageError(f"{path} line {e.lineno}: {e.msg}: fix the Python syntax there") from None
+    except Exception as e:  # the file's own code fails when run
+        sys.modules.pop(name)
+        raise UsageError(f"running {path} raised {type(e).__name__}: {e}: fix that file (it must run on import "
+                         "and define the functions only)") from None
     return module
 
 

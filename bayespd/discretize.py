@@ -37,6 +37,10 @@ class Particles:
                              "degenerate cells")
         positive("the particle spacing h", self.h)
         positive("the thickness", self.thickness)
+        if np.abs(self.x).max() > COORDINATE_LIMIT or not COORDINATE_LIMIT ** -1 <= self.h <= COORDINATE_LIMIT:
+            raise ValueError(f"particle positions (largest |x| {np.abs(self.x).max():g}) or the spacing "
+                             f"h={self.h:g} lie beyond 1e{np.log10(COORDINATE_LIMIT):.0f} (or h below its "
+                             "inverse): squared distances overflow float64; rescale the units")
         _refuse_duplicates(self.x, self.h)
 
     @property
@@ -92,6 +96,9 @@ class Particles:
         return mask
 
 
+COORDINATE_LIMIT = 1e100  # squared bond lengths and volumes h^dim stay inside float64
+
+
 def _refuse_duplicates(x: np.ndarray, h: float) -> None:
     """Particles closer than 1e-6 h are one point given twice (their bond would be ~0 long)."""
     close = cKDTree(x).query_pairs(1e-6 * h, output_type="ndarray")
@@ -105,6 +112,9 @@ def _cell_centres(extent, h: float, origin) -> np.ndarray:
     """Centres of a regular grid of cubic cells of size h filling a box of the given extent."""
     positive("h", h)
     positive("the box extents", list(extent))
+    if any(e / h > 1e7 for e in extent):
+        raise ValueError(f"h={h:g} cuts the box {list(extent)} into more than 1e7 cells along an axis: "
+                         "check the units of h and the extents")
     counts = [round(e / h) for e in extent]
     if any(abs(c * h - e) > 1e-9 * e for c, e in zip(counts, extent)):
         raise ValueError(f"every extent of the box must be a multiple of h={h}")
@@ -115,6 +125,7 @@ def _cell_centres(extent, h: float, origin) -> np.ndarray:
 def grid_2d(length: float, width: float, h: float, thickness: float = 1.0,
             origin=(0.0, 0.0)) -> Particles:
     """Cell-centred regular grid filling [0, length] x [0, width] (shifted by ``origin``)."""
+    positive("the thickness", thickness)
     x = _cell_centres((length, width), h, origin)
     return Particles(x, np.full(len(x), h * h * thickness), h, thickness)
 

@@ -74,7 +74,7 @@ class Scene:
         self.solver, self.rtol = solver, rtol
         direct = solver == "direct"
         self.constraints = Constraints(p, material.pattern if direct else None, self.dirichlet)
-        if not self.loads and not self.constraints.has_prescribed:
+        if not any(bool(load.force.ne(0).any()) for load in self.loads) and not self.constraints.has_prescribed:
             raise ValueError("a scene needs a Load or a Dirichlet region with a non-zero value "
                              "(displacement control): nothing loads this one")
         # PCG: K is never assembled; the preconditioner keeps the bonds with
@@ -119,7 +119,11 @@ class Scene:
         if "load" in params:
             finite("the load factor params['load']", params["load"], "pass a finite load factor",
                    NonFiniteParameterError)
-        return {k: torch.as_tensor(v) for k, v in params.items()}
+        try:
+            return {k: torch.as_tensor(v) for k, v in params.items()}
+        except (TypeError, ValueError, RuntimeError) as error:
+            bad = next(k for k, v in params.items() if not isinstance(v, (int, float, torch.Tensor, np.ndarray)))
+            raise TypeError(f"params[{bad!r}] must be a number or a tensor of numbers, got {params[bad]!r}") from error
 
     def _form(self, v_free, u_free, *theta):
         """v^T A u on the free dofs (A = K_ff + eps I), as a function of the parameters in
@@ -187,8 +191,16 @@ class Scene:
         return solve_form(self._form, self._factor(p), rhs, [p[k] for k in self.param_names])
 
     def solve(self, params: dict) -> torch.Tensor:
-        """Displacement (N, dim) at equilibrium; differentiable (twice) in every param."""
-        return self.constraints.expand(self.solve_free(params, self.free_load(params)))
+        """Displacement (N, dim) at equilibrium; differentiable (twice) in every param. Finite
+        inputs whose displacement overflows float64 (|f| / K near 1e308) raise
+        ``NonFiniteParameterError`` (a rejected proposal to the samplers), never return inf."""
+        u = self.constraints.expand(self.solve_free(params, self.free_load(params)))
+        if not bool(torch.isfinite(u.detach()).all()):
+            raise NonFiniteParameterError(
+                "the displacement overflowed to NaN or inf although every input is finite: the load, "
+                "the load factor params['load'] or a Dirichlet value is too large for the moduli "
+                "(|u| ~ |f| / K beyond 1e308); rescale the units")
+        return u
 
     def observation_matrix(self) -> torch.Tensor:
         """H on the free dofs as a sparse COO (n_points * dim, n_free) tensor: the observed

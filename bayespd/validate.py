@@ -11,14 +11,14 @@ import numpy as np
 import torch
 
 
-def _numbers(value) -> np.ndarray:
+def _numbers(value, name: str = "") -> np.ndarray:
     """``value`` (a number, sequence, array or tensor) as a float numpy array."""
     if isinstance(value, torch.Tensor):
         value = value.detach().cpu()
     try:
         return np.asarray(value, dtype=float)
     except (TypeError, ValueError) as error:
-        raise TypeError(f"expected numbers, got {value!r} ({type(value).__name__})") from error
+        raise TypeError(f"{name + ': ' if name else ''}expected numbers, got {value!r} ({type(value).__name__})") from error
 
 
 def _shown(v: np.ndarray, bad: np.ndarray) -> str:
@@ -31,7 +31,7 @@ def _shown(v: np.ndarray, bad: np.ndarray) -> str:
 
 def finite(name: str, value, fix: str = "pass finite numbers", error: type = ValueError):
     """``value`` with no NaN or inf entry; ``error`` is the class raised otherwise."""
-    v = _numbers(value)
+    v = _numbers(value, name)
     bad = ~np.isfinite(v)
     if bad.any():
         raise error(f"{name} contains NaN or inf ({_shown(v, bad)}): {fix}")

@@ -249,6 +249,7 @@ BAD_MODEL = [
     ("def scene(:\n    pass\n", "line 1: invalid syntax: fix the Python syntax there"),
     ("def scene(n):\n    pass\n", "scene(n) in {path} cannot be called as scene() (missing a required argument: "
                                  "'n'): define it as scene(), returning a bayespd.Scene"),
+    ("raise RuntimeError('boom')\n", "running {path} raised RuntimeError: boom: fix that file"),
 ]
 
 

@@ -56,3 +56,42 @@ def test_isolated_particle_has_empty_family():
     mat = bp.BondBased(lonely, bp.find_bonds(lonely, 2.0))
     with pytest.raises(ValueError, match="particle 24 .* empty family"):
         mat.stiffness({"K": 1.0, "delta": 2.0})
+
+
+def test_moduli_beyond_the_float64_range_are_refused(plate):
+    """K = 1e-300 solved to a displacement 5x off, K = 1e200 overflowed the stiffness."""
+    for K in (1e-300, 1e200):
+        with pytest.raises(ValueError, match=r"K=1e[-+]?\d+ lies outside \[1e-100, 1e\+100\]: .*rescale the units"):
+            plate[2].solve({"K": K, "G": 1.0, "delta": 2.0})
+
+
+def test_an_overflowing_displacement_is_refused(plate):
+    with pytest.raises(ValueError, match="displacement overflowed .* load factor params\\['load'\\]"):
+        plate[2].solve({"K": 1.0, "G": 1.0, "delta": 2.0, "load": 1.7e308})
+
+
+def test_coordinates_whose_squares_overflow_are_refused():
+    x = bp.grid_2d(4.0, 2.0, 1.0).x.copy()
+    x[0, 0] = 1e300
+    with pytest.raises(ValueError, match="largest \\|x\\| 1e\\+300.*rescale the units"):
+        bp.from_points(x, np.ones(8), h=1.0)
+
+
+def test_types_masks_thickness_and_zero_loads_are_named(plate):
+    p, mat, scene = plate
+    with pytest.raises(TypeError, match="the load: expected numbers"):
+        bp.Load(p.layer("right", 1.0), "ab")
+    with pytest.raises(TypeError, match="params\\['K'\\] must be a number"):
+        scene.solve({"K": "soft", "G": 1.0, "delta": 2.0})
+    with pytest.raises(TypeError, match="the observation points: expected numbers"):
+        bp.Observation(p, "abc")
+    with pytest.raises(ValueError, match="load region's mask has shape \\(3,\\)"):
+        bp.Scene(mat, scene.dirichlet, [bp.Load(np.ones(3, bool), (1.0, 0.0))])
+    with pytest.raises(ValueError, match="Dirichlet region's mask has shape \\(3,\\)"):
+        bp.Scene(mat, [bp.Dirichlet(np.ones(3, bool))], scene.loads)
+    with pytest.raises(ValueError, match="nothing loads"):
+        bp.Scene(mat, scene.dirichlet, [bp.Load(p.layer("right", 1.0), (0.0, 0.0))])
+    with pytest.raises(ValueError, match="the thickness must be positive"):
+        bp.grid_2d(4.0, 2.0, 1.0, thickness=0.0)
+    with pytest.raises(ValueError, match="more than 1e7 cells"):
+        bp.grid_2d(4.0, 2.0, 1e-200)

@@ -28,6 +28,9 @@ class EnsembleStore:
 
     def __init__(self, root, plan: dict):
         self.root = Path(root)
+        if self.root.exists() and not self.root.is_dir():
+            raise ValueError(f"the ensemble store {self.root} is a file, not a directory: pass a directory "
+                             "(it is created if missing)")
         self.root.mkdir(parents=True, exist_ok=True)
         for stale in self.root.glob("*.tmp"):  # left by a crash in the middle of a write
             stale.unlink()

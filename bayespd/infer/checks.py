@@ -1,5 +1,6 @@
 """Refuse bad input before any sampling, with messages that name the fix."""
 
+import inspect
 import math
 
 import numpy as np
@@ -8,17 +9,35 @@ from torch.distributions import constraints
 
 
 def as_tensors(data) -> dict:
-    """``data`` with its numpy arrays as torch tensors (floats in the default dtype), so a
+    """``data`` with its numpy arrays, lists and tuples as torch tensors (floats in the default dtype), so a
     model gets what Pyro takes; arrays of strings or objects are refused."""
     if not isinstance(data, dict):
         raise TypeError(f"data must be a dict of the model's keyword arguments, not {type(data).__name__}")
     out = dict(data)
     for k, v in data.items():
+        if isinstance(v, (list, tuple)):
+            try:
+                v = np.asarray(v)
+            except ValueError as error:  # ragged
+                raise TypeError(f"data[{k!r}] is a ragged {type(v).__name__}: pass an array or tensor") from error
         if isinstance(v, np.ndarray):
             if v.dtype.kind not in "biuf":
                 raise TypeError(f"data[{k!r}] is an array of {v.dtype}: pass numbers (or booleans for a mask)")
             out[k] = torch.as_tensor(v, dtype=torch.get_default_dtype() if v.dtype.kind == "f" else None)
     return out
+
+
+def check_arguments(model, data: dict) -> None:
+    """Every key of ``data`` is an argument the model takes (when its signature is known)."""
+    try:
+        signature = inspect.signature(model)
+    except (TypeError, ValueError):  # no signature: its own errors speak
+        return
+    try:
+        signature.bind_partial(**data)
+    except TypeError as error:
+        raise TypeError(f"data keys {sorted(data)} do not fit the model's arguments {signature} ({error}): "
+                        "pass only the model's keyword arguments") from None
 
 
 def check_continuous(priors: dict) -> None:

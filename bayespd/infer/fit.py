@@ -29,7 +29,7 @@ from pyro.infer.autoguide.initialization import init_to_median, init_to_value
 
 from bayespd.validate import finite
 
-from .checks import (as_tensors, check_continuous, check_data, check_observed_shape, check_priors,
+from .checks import (as_tensors, check_arguments, check_continuous, check_data, check_observed_shape, check_priors,
                      trace_priors)
 from .datatree import build_tree
 from .laplace import Laplace
@@ -107,6 +107,7 @@ def fit(model, data: dict, method="nuts", **settings):
     """
     s = settings_of(method, settings)
     data = as_tensors(data)
+    check_arguments(model, data)
     check_data(data, s.observed)
     pyro.set_rng_seed(s.seed)  # init_to_median draws from the prior: the seed fixes the start too
     init = _initial(s.init_values)

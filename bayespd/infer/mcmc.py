@@ -53,7 +53,7 @@ from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
 from bayespd.atomic import atomic_path
-from bayespd.validate import count, in_range, positive
+from bayespd.validate import count, in_range, positive, reading
 from bayespd.materials import ParameterRangeError
 from bayespd.linalg.sparse import NotPositiveDefiniteError
 
@@ -159,7 +159,9 @@ def _save(path, fingerprint, kernel, z, draws, stats):
 def _load(path, fingerprint):
     if not path.exists():
         return None
-    state = torch.load(path, weights_only=True)
+    with reading(path, "a chain checkpoint (torch.save)", f"delete it (or {path.parent}) to start that chain afresh"):
+        state = torch.load(path, weights_only=True)
+        state["fingerprint"], state["draws"]
     if state["fingerprint"] != fingerprint:
         raise CheckpointMismatchError(
             f"checkpoint {path} belongs to another run: {_differences(state['fingerprint'], fingerprint)} "

@@ -27,13 +27,34 @@ def max_plate_nesting(model, data, init):
     return -min(dims) if dims else 0
 
 
+def _non_finite_sites(model, data, init) -> str:
+    """The sample sites whose log density is not finite at the initial values."""
+    try:
+        trace = init_trace(model, data, init)
+        trace.compute_log_prob()
+    except Exception as error:  # the model itself fails there: say so
+        return f"the model raises {type(error).__name__} at the initial values"
+    bad = [k for k, s in trace.nodes.items()
+           if s["type"] == "sample" and not bool(torch.isfinite(s["log_prob_sum"]))]
+    return "sites with a non-finite log density at the start: " + ", ".join(repr(k) for k in bad) if bad else \
+        "each site is finite at the start, their sum or gradient is not"
+
+
 class Unconstrained:
     """Flat unconstrained parametrisation of ``model(**data)``, started at ``init``."""
 
     def __init__(self, model, data, init):
-        start, self._potential, self.transforms, self.trace = initialize_model(
-            model, model_kwargs=data, init_strategy=init,
-            max_plate_nesting=max_plate_nesting(model, data, init))
+        try:
+            start, self._potential, self.transforms, self.trace = initialize_model(
+                model, model_kwargs=data, init_strategy=init,
+                max_plate_nesting=max_plate_nesting(model, data, init))
+        except ValueError as error:
+            if "cannot find valid initial params" not in str(error):
+                raise
+            raise ValueError(f"the model's log density is not finite at any start Pyro tried "
+                             f"({_non_finite_sites(model, data, init)}): check the data (values the "
+                             "likelihood cannot reach, or so large that their square overflows), "
+                             "the priors and init_values") from error
         self.names = sorted(start)
         self.shapes = {k: start[k].shape for k in self.names}
         self.initial = self.flatten(start).detach()

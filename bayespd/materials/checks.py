@@ -18,6 +18,9 @@ def moduli_from_young(E, nu):
     return E / (3 * (1 - 2 * nu)), E / (2 * (1 + nu))
 
 
+MODULUS_RANGE = (1e-100, 1e100)  # LPS solves lose every digit below ~1e-160; K ~ 1e200 overflows
+
+
 class ParameterRangeError(ValueError):
     """A modulus outside (0, inf): bad input, or a sampler's or optimiser's trial point that
     over- or underflowed (which the inference code treats as a rejected proposal)."""
@@ -29,7 +32,10 @@ class NonFiniteParameterError(ParameterRangeError):
 
 def check_modulus(name: str, value, n: int) -> torch.Tensor:
     """A modulus as a tensor broadcastable to (n,); refuse NaN, inf and non-positive values."""
-    v = torch.as_tensor(value)
+    try:
+        v = torch.as_tensor(value)
+    except (TypeError, ValueError, RuntimeError) as error:
+        raise TypeError(f"{name} must be a number or a tensor of numbers, got {value!r}") from error
     if v.dim() > 1 or (v.dim() == 1 and v.shape[0] != n):
         raise ValueError(f"{name} must be a scalar or have one value per particle ({n})")
     if not bool(torch.all(torch.isfinite(v))):
@@ -37,4 +43,9 @@ def check_modulus(name: str, value, n: int) -> torch.Tensor:
     if not bool(torch.all(v > 0)):
         raise ParameterRangeError(f"{name} must be positive (got min {float(v.min()):g}): moduli "
                          "are positive; sample them on a log scale")
+    if not bool(torch.all((v >= MODULUS_RANGE[0]) & (v <= MODULUS_RANGE[1]))):
+        extreme = float(v.max()) if bool(torch.any(v > MODULUS_RANGE[1])) else float(v.min())
+        raise ParameterRangeError(f"{name}={extreme:g} lies outside [{MODULUS_RANGE[0]:g}, {MODULUS_RANGE[1]:g}]: "
+                                  "the stiffness products under- or overflow float64 there; rescale the "
+                                  "units (moduli in MPa or GPa are of order 1 to 1e6)")
     return v

@@ -68,3 +68,9 @@ def test_damaged_files_are_named(tmp_path):
     (tmp_path / "plan.json").write_text('{"seed": 0, "n_po')
     with pytest.raises(ValueError, match=r"cannot read .*plan.json as the store's plan .*delete the store"):
         EnsembleStore(tmp_path, PLAN)
+
+
+def test_a_store_path_that_is_a_file_is_named(tmp_path):
+    (tmp_path / "store").write_text("x")
+    with pytest.raises(ValueError, match="the ensemble store .*store is a file, not a directory"):
+        EnsembleStore(tmp_path / "store", {"n": 1})

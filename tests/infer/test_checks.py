@@ -104,3 +104,29 @@ def test_a_horizon_prior_on_exactly_h_to_delta_max_passes_despite_rounding(scene
     check_priors({"delta": dist.Uniform(1.0, 2.5).expand([1]).to_event(1)}, scene)  # independent support
     with pytest.raises(ValueError, match="prior of delta"):
         check_priors({"delta": dist.Uniform(1.0, 2.6).expand([1]).to_event(1)}, scene)
+
+
+def test_lists_become_tensors_and_an_unreachable_start_names_the_site():
+    import pyro
+    import pyro.distributions as dist
+    from bayespd.infer import fit
+
+    def model(y):
+        mu = pyro.sample("mu", dist.Normal(0.0, 1.0))
+        with pyro.plate("obs", 3):
+            pyro.sample("y", dist.Normal(mu, 1.0), obs=y)
+
+    tree = fit(model, {"y": [0.1, 0.2, 0.3]}, "laplace", num_samples=5, progress=False)
+    assert tree["posterior"]["mu"].shape == (1, 5)
+    with pytest.raises(ValueError, match="log density is not finite at any start .*'y'.*check the data"):
+        fit(model, {"y": [0.1, 1e300, 0.3]}, "laplace", num_samples=5, progress=False)
+
+
+def test_data_keys_the_model_does_not_take_are_named():
+    from bayespd.infer import fit
+
+    def model(y):
+        pyro.sample("y", dist.Normal(pyro.sample("mu", dist.Normal(0.0, 1.0)), 1.0), obs=y)
+
+    with pytest.raises(TypeError, match=r"data keys \['y', 'z'\] do not fit the model's arguments \(y\)"):
+        fit(model, {"y": torch.tensor(0.1), "z": 1.0}, "laplace", num_samples=5, progress=False)

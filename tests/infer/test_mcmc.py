@@ -172,3 +172,9 @@ def test_the_plate_model_pickles_after_its_scene_has_solved():
     model = pickle.loads(pickle.dumps(elastic_plate(scene, {"K": 3000.0, "G": 1400.0}, 1e-3)))
     assert isinstance(model, ElasticPlate)
     assert torch.equal(model.scene.solve(params), u)
+
+
+def test_an_unreadable_checkpoint_file_is_named(tmp_path):
+    (tmp_path / "chain0.pt").write_bytes(b"not a torch file" * 20)
+    with pytest.raises(ValueError, match=r"(?s)cannot read .*chain0.pt as a chain checkpoint .*delete it"):
+        fit(Killable(), {"y": Y}, checkpoint=tmp_path, **ONE)
