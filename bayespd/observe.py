@@ -18,7 +18,7 @@ import torch
 from scipy.spatial import Delaunay, cKDTree
 
 from bayespd.discretize import Particles
-from bayespd.validate import _numbers, finite, in_range, positive
+from bayespd.validate import numbers, finite, in_range, positive
 
 
 def locate(particles: Particles, points: np.ndarray):
@@ -46,7 +46,7 @@ def locate(particles: Particles, points: np.ndarray):
 
 
 def _points(particles: Particles, points) -> np.ndarray:
-    points = np.atleast_2d(_numbers(points, "the observation points"))
+    points = np.atleast_2d(numbers(points, "the observation points"))
     if points.ndim != 2 or points.shape[1] != particles.dim:
         raise ValueError(f"points must be (n, {particles.dim}), got shape {points.shape}")
     if len(points) == 0:

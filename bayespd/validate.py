@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 
-def _numbers(value, name: str = "") -> np.ndarray:
+def numbers(value, name: str = "") -> np.ndarray:
     """``value`` (a number, sequence, array or tensor) as a float numpy array."""
     if isinstance(value, torch.Tensor):
         value = value.detach().cpu()
@@ -31,7 +31,7 @@ def _shown(v: np.ndarray, bad: np.ndarray) -> str:
 
 def finite(name: str, value, fix: str = "pass finite numbers", error: type = ValueError):
     """``value`` with no NaN or inf entry; ``error`` is the class raised otherwise."""
-    v = _numbers(value, name)
+    v = numbers(value, name)
     bad = ~np.isfinite(v)
     if bad.any():
         raise error(f"{name} contains NaN or inf ({_shown(v, bad)}): {fix}")
@@ -40,7 +40,7 @@ def finite(name: str, value, fix: str = "pass finite numbers", error: type = Val
 
 def positive(name: str, value, fix: str = "pass a finite positive number"):
     """``value`` finite and > 0 in every entry."""
-    v = _numbers(finite(name, value, fix))
+    v = numbers(finite(name, value, fix))
     bad = ~(v > 0)
     if bad.any():
         raise ValueError(f"{name} must be positive, got {_shown(v, bad)}: {fix}")
@@ -49,7 +49,7 @@ def positive(name: str, value, fix: str = "pass a finite positive number"):
 
 def in_range(name: str, value, low: float, high: float, fix: str, closed: tuple = (True, True)):
     """``value`` finite and in [low, high] (``closed`` says which ends belong)."""
-    v = _numbers(finite(name, value, fix))
+    v = numbers(finite(name, value, fix))
     above = v >= low if closed[0] else v > low
     below = v <= high if closed[1] else v < high
     bad = ~(above & below)
