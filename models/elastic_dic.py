@@ -53,11 +53,13 @@ def dic_data(scene, y, mask=None) -> dict:
     return {"y": torch.as_tensor(np.where(keep, y, 0.0)), "mask": torch.as_tensor(keep)}
 
 
-def elastic_dic(scene, nominal: dict, noise_scale: float, priors: dict | None = None):
+def elastic_dic(scene, nominal: dict, noise_scale: float, priors: dict | None = None, discrepancy=None):
     """A Pyro model ``model(y=None, mask=None)`` for a DIC field y (points, dim) on the scene's
-    grid (see ``dic_data``); the grid's own mask is always applied."""
+    grid (see ``dic_data``); the grid's own mask is always applied. ``discrepancy`` (a
+    ``bp.Discrepancy`` estimated at the grid's points) adds the approximation-error term, its
+    Gaussian marginalised over the masked entries."""
     grid_mask = torch.as_tensor(_grid_scene(scene).mask)
-    inner = elastic_plate(scene, nominal, noise_scale, priors)
+    inner = elastic_plate(scene, nominal, noise_scale, priors, discrepancy)
 
     def model(y=None, mask=None):
         inner(y, grid_mask if mask is None else grid_mask & torch.as_tensor(mask, dtype=torch.bool))

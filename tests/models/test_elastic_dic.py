@@ -7,6 +7,7 @@ posterior; a broken mask or likelihood biases K by many sd: the band holds 2 of 
 """
 import numpy as np
 import pyro.distributions as dist
+import pyro
 import pytest
 import torch
 
@@ -75,3 +76,25 @@ def test_bad_input_is_refused(problem):
         elastic_dic(coarse, {"K": -1.0, "G": 1200.0}, 0.1)
     with pytest.raises(ValueError, match="needs a scene observed through bp.GridObservation"):
         elastic_dic(scene(1.0, 3.0, bp.Observation), nominal, 0.1)
+
+
+def test_a_discrepancy_term_enters_the_masked_likelihood(problem):
+    """A term with mean m and no covariance shifts the data by m: the log density of y with the
+    term equals that of y - m without it, over the kept entries only (the band must not count)."""
+    coarse, y, mask, sigma = problem
+    data = dic_data(coarse, y, mask)
+    m = torch.linspace(-1.0, 1.0, data["y"].numel()).reshape(data["y"].shape) * sigma
+    n = m.numel()
+    term = bp.Discrepancy(m, torch.zeros(n, 1), torch.zeros(n), rms=1.0, explained=0.0, num_draws=1)
+    at = {"K": torch.tensor(2900.0), "G": torch.tensor(1350.0), "delta": torch.tensor(2.6),
+          "sigma": torch.tensor(sigma)}
+
+    def log_likelihood(discrepancy, obs):
+        model = elastic_dic(coarse, {"K": 2500.0, "G": 1200.0}, 0.05 * float(np.nanmax(np.abs(y))),
+                            {"delta": ScaledBeta(2.3, 2.9)}, discrepancy)
+        trace = pyro.poutine.trace(pyro.poutine.condition(model, data=at)).get_trace(obs, data["mask"])
+        trace.compute_log_prob()
+        return float(trace.nodes["y"]["log_prob_sum"])
+
+    assert log_likelihood(term, data["y"]) == pytest.approx(log_likelihood(None, data["y"] - m), rel=1e-10)
+    assert log_likelihood(term, data["y"]) != pytest.approx(log_likelihood(None, data["y"]), rel=1e-3)
