@@ -1,5 +1,6 @@
 """The MAP searches of one fit (``init="map"``, ``modes="weighted"``) and what they found."""
 
+import warnings
 from dataclasses import dataclass
 
 from . import laplace as _laplace
@@ -29,6 +30,20 @@ class Search:
         space = Unconstrained(model, data, init)
         result, self.modes = best_map(space, model, data, init, self.starts, self.seed, progress=self.progress)
         return _laplace.init_at(space, result[0])
+
+    def laplace_start(self, model, data, init, observed):
+        """(init strategy at the MAP, the space, the Laplace Gaussian there or None where the
+        Hessian is not positive definite (with a warning), gradient evaluations)."""
+        space, found, evaluations = _laplace.modes(model, data, init, observed, "exact", self.progress,
+                                                   self.starts, self.seed)
+        self.modes = modes_json(space, found)
+        z, _, _, h = found[0]
+        try:
+            gaussian = _laplace.Gaussian(z, h, space.labels)
+        except _laplace.NotPositiveDefiniteHessian as error:
+            warnings.warn(f"{error}. SVI starts at the MAP with the guide's default scale instead", stacklevel=4)
+            gaussian = None
+        return _laplace.init_at(space, z), space, gaussian, evaluations
 
     def modes_to_fit(self, model, data, init, observed, hessian):
         """(space, the modes worth fitting (``mixture.kept``), their Laplace log masses, gradient

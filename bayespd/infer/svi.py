@@ -31,6 +31,7 @@ from bayespd.materials.checks import ParameterRangeError
 from bayespd.validate import count, positive
 
 from .method import Draws, Method
+from .whitened import AutoWhitenedMVN
 from .mixture import allocate, mode_weights, one_chain
 
 GUIDES = ("normal", "mvn", "lowrank", "flow")
@@ -53,11 +54,13 @@ class AutoFlow(AutoNormalizingFlow):
         return ComposeTransformModule([*flows, AffineTransform(self._init_loc(), self.init_scale)])
 
 
-def make_guide(model, guide, init, rank=None):
+def make_guide(model, guide, init, rank=None, start=None):
+    """The guide ``guide`` started at ``init``; ``start`` = (space, Laplace Gaussian) whitens the
+    ``"mvn"`` guide by that Gaussian (``AutoWhitenedMVN``)."""
     if guide == "normal":
         return AutoNormal(model, init_loc_fn=init)
     if guide == "mvn":
-        return AutoMultivariateNormal(model, init_loc_fn=init)
+        return AutoMultivariateNormal(model, init_loc_fn=init) if start is None else AutoWhitenedMVN(model, init, *start)
     if guide == "lowrank":
         return AutoLowRankMultivariateNormal(model, init_loc_fn=init, rank=rank)
     if guide == "flow":
@@ -66,15 +69,16 @@ def make_guide(model, guide, init, rank=None):
 
 
 def run_svi(model, data, guide, num_samples, seed, steps, lr, init, progress, rank=None,
-            particles=1, evidence=False):
+            particles=1, evidence=False, start=None):
     """Fit ``guide`` by ``steps`` of ClippedAdam (learning rate decaying geometrically from
     ``lr`` to ``lr / 10``: a constant rate leaves the single-sample gradient noise in the
     result) on the ELBO with ``particles`` samples per step; return ``num_samples`` guide
     draws as one chain ``{site: (1, num_samples, ...)}`` and the loss trace, and with
-    ``evidence`` also ``log_evidence`` from ``num_samples`` further guide draws."""
+    ``evidence`` also ``log_evidence`` from ``num_samples`` further guide draws; ``start``: see
+    ``make_guide``."""
     pyro.set_rng_seed(seed)
     with pyro.get_param_store().scope():
-        q = make_guide(model, guide, init, rank)
+        q = make_guide(model, guide, init, rank, start)
         optim = ClippedAdam({"lr": lr, "lrd": 0.1 ** (1 / steps)})
         svi = pyro.infer.SVI(model, q, optim, Trace_ELBO(num_particles=particles))
         losses = []
@@ -142,7 +146,9 @@ class SVI(Method):
     """Stochastic variational inference: ``guide`` in ``GUIDES``, fitted by ``svi_steps`` of
     decaying-rate ClippedAdam from ``svi_lr`` with ``svi_particles`` ELBO samples per step
     (``svi_rank``: the ``"lowrank"`` guide's rank); ``num_samples`` guide draws as one chain.
-    ``sample_stats``: ``svi_loss``. With ``modes="weighted"``, a guide fitted from each mode,
+    ``sample_stats``: ``svi_loss``. With ``init="map"`` the ``"mvn"`` guide starts at the
+    Laplace Gaussian there, in coordinates it whitens (``whitened.py``): the learning rate is
+    then in posterior standard deviations, however narrow the posterior. With ``modes="weighted"``, a guide fitted from each mode,
     mixed by their importance-sampling evidence (``log_evidence``)."""
 
     name = "svi"
@@ -164,16 +170,21 @@ class SVI(Method):
         if self.svi_rank is not None:
             count("svi_rank", self.svi_rank, 1, "or None for about sqrt(dim)")
 
-    def _fit(self, model, data, init, seed, evidence=False):
+    def _fit(self, model, data, init, seed, evidence=False, start=None):
         return run_svi(model, data, self.guide, self.num_samples, seed, self.svi_steps, self.svi_lr, init,
-                       self.progress, self.svi_rank, self.svi_particles, evidence=evidence)
+                       self.progress, self.svi_rank, self.svi_particles, evidence=evidence, start=start)
 
     def run(self, model, data, init, search):
         if search.weighted:
             return self._at_every_mode(model, data, init, search)
-        if self.init == "map":
+        start, evaluations = None, 0
+        if self.init == "map" and self.guide == "mvn":  # started at the Laplace Gaussian, whitened by it
+            init, space, gaussian, evaluations = search.laplace_start(model, data, init, self.observed)
+            start = None if gaussian is None else (space, gaussian)
+        elif self.init == "map":
             init = search.map_init(model, data, init)
-        return Draws(*self._fit(model, data, init, self.seed), self.svi_steps * self.svi_particles)
+        return Draws(*self._fit(model, data, init, self.seed, start=start),
+                     evaluations + self.svi_steps * self.svi_particles)
 
     def _at_every_mode(self, model, data, init, search):
         """A guide fitted from every mode worth fitting, mixed by their evidence estimates."""

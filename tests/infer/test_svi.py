@@ -81,3 +81,38 @@ def test_flow_guide_refuses_one_dimension_and_unknown_guides_are_refused():
         fit(scalar, {"y": torch.tensor(0.5)}, "svi", guide="flow", svi_steps=2, progress=False)
     with pytest.raises(ValueError, match="guide must be one of"):
         fit(scalar, {"y": torch.tensor(0.5)}, "svi", guide="iaf", svi_steps=2, progress=False)
+
+
+B = torch.tensor([[1.0, 0.8, 0.1], [0.8, 1.0, -0.3], [0.5, -0.2, 1.0], [0.2, 0.4, 0.6]])
+NARROW = 1e-3  # posterior sd ~1e-3: 20x below the learning rate
+
+
+def two_sites(y):
+    """Sites in the order b (2 entries), a: not the sorted order, so the Laplace space's flat
+    layout (a, b) must be permuted into the guide's (b, a)."""
+    b = pyro.sample("b", dist.Normal(0.0, 2.0).expand([2]).to_event(1))
+    a = pyro.sample("a", dist.Normal(0.0, 2.0))
+    pyro.sample("y", dist.Normal(B @ torch.cat([b, a[None]]), NARROW).to_event(1), obs=y)
+
+
+def test_map_started_mvn_is_whitened_so_a_narrow_posterior_is_recovered():
+    """The whitened guide holds the exact posterior: means within 0.1 sd (4.5 standard errors of
+    2000 draws), sds within 10 % and correlations within 0.15 (300 single-sample steps leave
+    optimiser noise of ~0.1 in the guide's Cholesky entries); the plain guide, whose Adam steps (~lr = 0.02)
+    dwarf the sd, ends many sd off after the same steps."""
+    y = torch.tensor([1.2, 0.9, 0.1, -0.4])
+    precision = torch.eye(3) / 4 + B.T @ B / NARROW**2
+    cov = torch.linalg.inv(precision)
+    mean, sd = (cov @ B.T @ y / NARROW**2).numpy(), torch.sqrt(torch.diag(cov)).numpy()
+
+    def theta(init):
+        tree = fit(two_sites, {"y": y}, "svi", svi_steps=300, num_samples=2000, seed=4, init=init, progress=False)
+        post = tree["posterior"]
+        return np.column_stack([post["b"].values.reshape(-1, 2), post["a"].values.reshape(-1)])
+
+    whitened = theta("map")
+    assert np.all(np.abs(whitened.mean(0) - mean) < 0.1 * sd)
+    np.testing.assert_allclose(whitened.std(0), sd, rtol=0.1)
+    np.testing.assert_allclose(np.corrcoef(whitened.T), cov.numpy() / np.outer(sd, sd), atol=0.15)
+    plain = theta("median")
+    assert np.max(np.abs(plain.mean(0) - mean) / sd) > 3
