@@ -107,6 +107,8 @@ def _layout(name: str, a, order, nx: int, ny: int) -> np.ndarray:
 
 def _lattice(points: np.ndarray):
     """(origin, h, nodes) of points on a square lattice: nodes (n, dim) integer indices."""
+    if len(points) < 2:
+        raise ValueError("one measured point gives no lattice spacing: pass particles= to observe it")
     distance, _ = cKDTree(points).query(points, k=2)
     rough = float(np.median(distance[:, 1]))
     if not rough > 0:
@@ -136,8 +138,8 @@ def _at_nodes(points: np.ndarray, body, thickness: float):
     keep = np.ones(len(x), dtype=bool) if body is None else np.asarray(body(x), dtype=bool)
     if keep.shape != (len(x),) or not keep.any():
         raise ValueError("body must be a predicate x (M, dim) -> M booleans keeping at least one lattice node")
-    particles = Particles(x[keep], np.full(int(keep.sum()), h ** points.shape[1] * (thickness if points.shape[1] == 2 else 1.0)),
-                          h, thickness)
+    cell = h ** points.shape[1] * (thickness if points.shape[1] == 2 else 1.0)
+    particles = Particles(x[keep], np.full(int(keep.sum()), cell), h, thickness)
     table = np.full(len(x), -1)
     table[keep] = np.arange(int(keep.sum()))
     index = table[np.ravel_multi_index(nodes.T[::-1], shape[::-1])]

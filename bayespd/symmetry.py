@@ -44,8 +44,9 @@ class SymmetryPlane:
         positive("delta_max", delta_max, "pass the horizon the bonds are found at")
         side = particles.x[:, axis] - at
         if np.any(np.abs(side) < 1e-6 * particles.h) or (side.min() < 0 < side.max()):
-            raise ValueError(f"the particles must lie strictly on one side of the plane x[{axis}] = {at}, none on "
-                             "it: keep one half of a grid whose cell faces lie on the plane (e.g. bp.grid_2d of the half)")
+            raise ValueError(f"the particles must lie strictly on one side of the plane x[{axis}] = {at}, none "
+                             "on it: keep one half of a grid whose cell faces lie on the plane (e.g. bp.grid_2d "
+                             "of the half)")
         self.particles, self.axis, self.at, self.delta_max = particles, axis, float(at), float(delta_max)
         self.depth = 2 * (delta_max + particles.h)
         self.master = np.flatnonzero(np.abs(side) < self.depth)

@@ -126,5 +126,7 @@ def test_bad_input_is_refused_by_name():
         bp.from_point_field(points, ok, thickness=0.0)
     with pytest.raises(ValueError, match="with particles= given, cut the body"):
         bp.from_point_field(points, ok, particles=bp.grid_2d(3.0, 2.0, 1.0), body=lambda x: x[:, 0] > 0)
+    with pytest.raises(ValueError, match="one measured point gives no lattice spacing"):
+        bp.from_point_field(points[:1], ok[:1])
     with pytest.raises(ValueError, match="two measured points fall on one lattice node"):
         bp.from_point_field(np.vstack([points, points[:1] + 1e-5]), np.zeros((7, 2)))

@@ -59,7 +59,7 @@ def test_elastic_plate_scores_the_marginal(rng):
     y = obs(u).numpy() + 0.05 * rng.standard_normal(obs.points.shape) + _rigid(nuisance, [1.0, 2.0, 0.01])
     marginal = bp.Scene(scene.material, scene.dirichlet, scene.loads, nuisance)
     model = elastic_plate(marginal, {"K": 2000.0, "G": 900.0}, 0.05)
-    params = {"K": torch.tensor(2000.0), "G": torch.tensor(900.0), "delta": torch.tensor(2.0), "sigma": torch.tensor(0.05)}
+    params = {k: torch.tensor(v) for k, v in {"K": 2000.0, "G": 900.0, "delta": 2.0, "sigma": 0.05}.items()}
     trace = pyro.poutine.trace(pyro.poutine.condition(model, params)).get_trace(**nuisance.data(y))
     trace.compute_log_prob()
     data = nuisance.data(y)
