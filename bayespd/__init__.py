@@ -15,6 +15,11 @@ from bayespd.boundary import Constraints, Dirichlet, Load  # noqa: E402
 from bayespd.observe import (GridObservation, Observation, OpeningObservation, ParticleObservation,  # noqa: E402
                              edge_mask, finite_mask, grid_points, model_data)
 from bayespd.dic import frame_data, read_dice  # noqa: E402
+from bayespd.fields import Field, from_grid_field, from_point_field  # noqa: E402
+from bayespd.field_files import read_field  # noqa: E402
+from bayespd.rigid import RigidNuisance  # noqa: E402
+from bayespd.supports import point_load, point_support, roller, traction  # noqa: E402
+from bayespd.symmetry import SymmetryPlane  # noqa: E402
 from bayespd.vtk import Series as VTKSeries, write_pvd, write_vtu  # noqa: E402
 from bayespd.meshes import from_mesh  # noqa: E402
 from bayespd.gmrf import GMRF  # noqa: E402
@@ -31,7 +36,9 @@ __all__ = [
     "Constant", "Conical", "Gaussian", "Bernstein", "LPS", "BondBased", "ConicalBondBased",
     "moduli_from_young",
     "Constraints", "Dirichlet", "Load", "NonlinearBonds", "GMRF", "Observation", "OpeningObservation", "ParticleObservation", "GridObservation", "grid_points",
-    "edge_mask", "finite_mask", "model_data", "read_dice", "frame_data", "write_vtu", "write_pvd",
+    "edge_mask", "finite_mask", "model_data", "read_dice", "frame_data",
+    "Field", "from_grid_field", "from_point_field", "read_field", "RigidNuisance",
+    "point_support", "roller", "point_load", "traction", "SymmetryPlane", "write_vtu", "write_pvd",
     "VTKSeries", "Scene", "NotPositiveDefiniteError", "ConvergenceError", "solve",
     "ReducedScene", "Discrepancy", "estimate_discrepancy", "prior_draws", "posterior_draws", "gaussian_draws", "LogFeatures",
     "ElasticFeatures",

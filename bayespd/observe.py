@@ -14,6 +14,7 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
+import scipy.sparse as sp
 import torch
 from scipy.spatial import Delaunay, cKDTree
 
@@ -71,6 +72,18 @@ class LinearObservation:
     def __call__(self, u: torch.Tensor) -> torch.Tensor:
         """Observed displacements (n_points, dim) of a field u (N, dim)."""
         return (self.weights[..., None] * u[self.index]).sum(1)
+
+    def matrix(self, n_particles: int) -> sp.csr_matrix:
+        """H as a sparse (n_points * dim, n_particles * dim) matrix on the flattened
+        (point-major) observations and dofs, duplicates summed, zeros dropped."""
+        dim = self.points.shape[1]
+        index, weights = self.index.numpy(), self.weights.numpy()
+        rows = (np.arange(self.n)[:, None, None] * dim + np.arange(dim)).repeat(index.shape[1], 1)
+        cols = index[:, :, None] * dim + np.arange(dim)
+        vals = np.broadcast_to(weights[:, :, None], rows.shape)
+        H = sp.csr_matrix((vals.ravel(), (rows.ravel(), cols.ravel())), shape=(self.n * dim, n_particles * dim))
+        H.eliminate_zeros()
+        return H
 
 
 class Observation(LinearObservation):

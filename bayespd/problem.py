@@ -7,7 +7,6 @@ import warnings
 from functools import cached_property
 
 import numpy as np
-import scipy.sparse as sp
 import torch
 
 from bayespd.connectivity import floating_particles
@@ -207,16 +206,7 @@ class Scene:
         displacements (flattened point-major) are H u_free + (the prescribed dofs' part)."""
         if self.observation is None:
             raise ValueError("this scene has no observation operator")
-        obs, dim, c = self.observation, self.particles.dim, self.constraints
-        index, weights = obs.index.numpy(), obs.weights.numpy()
-        rows = (np.arange(obs.n)[:, None, None] * dim + np.arange(dim)).repeat(index.shape[1], 1)
-        cols = index[:, :, None] * dim + np.arange(dim)
-        vals = np.broadcast_to(weights[:, :, None], rows.shape)
-        free_col = np.full(c.shape[0] * dim, -1)
-        free_col[c.free_dofs] = np.arange(len(c.free_dofs))
-        keep = (free_col[cols] >= 0) & (vals != 0)
-        H = sp.coo_matrix((vals[keep], (rows[keep], free_col[cols[keep]])),
-                          shape=(obs.n * dim, len(c.free_dofs))).tocsr().tocoo()  # sums duplicates
+        H = self.observation.matrix(self.particles.n)[:, self.constraints.free_dofs].tocoo()
         return torch.sparse_coo_tensor(np.stack([H.row, H.col]), H.data, H.shape,
                                        check_invariants=True).coalesce()
 
