@@ -4,7 +4,7 @@ tests/inverse/test_psi_choice.py)."""
 import numpy as np
 import pytest
 
-from bayespd.inverse.tikhonov import Objective, tikhonov
+from bayespd.inverse.least_squares import Objective, tikhonov
 from tests.conftest import plate_scene
 from bayespd.scenes.tikhonov_square import DELTA, K0, MU0, graded_moduli, square_scene
 
