@@ -10,7 +10,7 @@ torch.set_default_dtype(torch.float64)
 from bayespd.discretize import Particles, from_points, grid_2d, grid_3d  # noqa: E402
 from bayespd.bonds import Bonds, check_horizon, find_bonds, precrack  # noqa: E402
 from bayespd.influence import Bernstein, Conical, Constant, Gaussian  # noqa: E402
-from bayespd.materials import LPS, BondBased, ConicalBondBased, moduli_from_young  # noqa: E402
+from bayespd.materials import LPS, BondBased, ConicalBondBased, moduli_from_young, young_from_moduli  # noqa: E402
 from bayespd.boundary import Constraints, Dirichlet, Load  # noqa: E402
 from bayespd.observe import (GridObservation, Observation, OpeningObservation, ParticleObservation,  # noqa: E402
                              edge_mask, finite_mask, grid_points, model_data)
@@ -34,7 +34,7 @@ __all__ = [
     "Particles", "grid_2d", "grid_3d", "from_points", "from_mesh", "Bonds", "find_bonds", "check_horizon",
     "precrack",
     "Constant", "Conical", "Gaussian", "Bernstein", "LPS", "BondBased", "ConicalBondBased",
-    "moduli_from_young",
+    "moduli_from_young", "young_from_moduli",
     "Constraints", "Dirichlet", "Load", "NonlinearBonds", "GMRF", "Observation", "OpeningObservation", "ParticleObservation", "GridObservation", "grid_points",
     "edge_mask", "finite_mask", "model_data", "read_dice", "frame_data",
     "Field", "from_grid_field", "from_point_field", "read_field", "RigidNuisance",

@@ -208,7 +208,7 @@ def _tikhonov(module, scene, data, args):
     import numpy as np
 
     from bayespd.infer.datatree import build_tree
-    from bayespd.inverse.tikhonov import tikhonov
+    from bayespd.inverse.least_squares import tikhonov
 
     init = _function(module, "init", "init()", args.model, "{parameter: starting value}")()
     fixed = module.fixed() if callable(getattr(module, "fixed", None)) else None

@@ -25,7 +25,7 @@ from bayespd.scenes.tikhonov_square import DELTA, MU0, graded_moduli, noisy_fine
 from bayespd import linalg
 from bayespd.infer import fit
 from bayespd.inverse.psi_choice import discrepancy
-from bayespd.inverse.tikhonov import tikhonov
+from bayespd.inverse.least_squares import tikhonov
 from bayespd.models.heterogeneous_field import heterogeneous_field, tikhonov_settings
 
 HYPER = {"amplitude": 0.1, "length": 250.0}

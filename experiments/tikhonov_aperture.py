@@ -31,7 +31,7 @@ from common import run_dir, write_metrics
 import bayespd as bp
 from bayespd import linalg
 from bayespd.damage import CriticalStretch
-from bayespd.inverse.tikhonov import tikhonov
+from bayespd.inverse.least_squares import tikhonov
 from bayespd.solvers.quasistatic import quasi_static
 from bayespd.linalg.sparse import ConvergenceError
 

@@ -18,7 +18,7 @@ from common import run_dir, write_metrics
 from bayespd.scenes.tikhonov_square import DELTA, FORCE, H, K0, MU0, noisy_fine_data, square_scene
 
 from bayespd.inverse.psi_choice import discrepancy, lcurve, psi_sweep
-from bayespd.inverse.tikhonov import tikhonov
+from bayespd.inverse.least_squares import tikhonov
 
 TRUTH = {"K": K0, "G": MU0}
 START = {"K": 100.0, "G": 100.0}

@@ -17,7 +17,7 @@ from common import run_dir, write_metrics
 from bayespd.scenes.tikhonov_square import DELTA, GAMMA_K, GAMMA_MU, H, MU0, graded_moduli, noisy_fine_data, square_scene
 
 from bayespd.inverse.psi_choice import discrepancy, lcurve, psi_sweep
-from bayespd.inverse.tikhonov import tikhonov
+from bayespd.inverse.least_squares import tikhonov
 
 PAPER_MAX_ERROR, TARGET = 0.012, 0.005
 METHODS = {"newton_cg_gauss_newton": ("Newton-CG", "gauss-newton", 500),

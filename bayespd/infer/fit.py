@@ -31,10 +31,10 @@ from bayespd.validate import finite
 
 from .checks import (as_tensors, check_arguments, check_continuous, check_data, check_observed_shape, check_priors,
                      trace_priors)
-from .datatree import build_tree
+from .datatree import SAMPLE_DIMS, _dataset, build_tree
 from .laplace import Laplace
 from .method import Method
-from .replay import replay
+from .replay import replay, thinned
 from .samplers import HMC, NUTS
 from .search import Search
 from .space import init_trace
@@ -94,9 +94,13 @@ def fit(model, data: dict, method="nuts", **settings):
     Input is checked first (``bayespd.infer.checks``; numpy arrays in ``data`` become
     tensors): NaN data outside (or under) ``data["mask"]``, observations of the wrong shape,
     discrete priors, and, given ``scene``, priors whose support leaves the physical range. The seed fixes the start (``init_to_median`` draws from
-    the prior). Every method then replays the model per draw: ``log_likelihood`` (pointwise,
-    mask and scale applied, masked entries 0: ``az.loo`` works), ``posterior_predictive`` and
-    ``pyro.deterministic`` sites (added to ``posterior``). ``observed_data``; ``constant_data``:
+    the prior). Every method then replays the model per draw (``predictive=True``, the
+    default; ``predictive=n``: n draws evenly spaced along the chains, the groups' ``draw``
+    coordinate naming them; ``predictive=False``: no replay, none of these groups):
+    ``log_likelihood`` (pointwise, mask and scale applied, masked entries 0: ``az.loo``
+    works), ``posterior_predictive`` and ``pyro.deterministic`` sites (added to ``posterior``,
+    or to ``posterior_predictive`` when thinned). One factorisation serves every draw
+    (``bayespd.infer.replay``). ``observed_data``; ``constant_data``:
     the other data tensors, the scene's particle positions and observation points, and
     ``constant_data``; given a scene, observations get dims ``(point, component)``. A model
     with a ``diagnostics(draws)`` method (draws: arrays (chain, draw, ...)) adds the arrays it
@@ -130,19 +134,25 @@ def fit(model, data: dict, method="nuts", **settings):
     start = time.perf_counter()
     pyro.set_rng_seed(s.seed)
     posterior = {k: np.asarray(v) for k, v in posterior.items()}
-    loglik, predictive, deterministic = replay(model, data, posterior, s.observed, s.progress)
+    replayed = _replayed(model, data, posterior, s)
     extra = getattr(model, "diagnostics", lambda draws: {})(posterior)
     if extra:  # stats: arrays (chain, draw), or a Dataset (Laplace)
         stats = (stats.assign({k: (("chain", "draw"), v) for k, v in extra.items()})
                  if isinstance(stats, xr.Dataset) else {**stats, **extra})
     dims, coords, const = _scene_layout(s.scene, data, s.observed, s.dims, s.coords, s.constant_data)
     groups = {
-        "posterior": {**posterior, **deterministic},
+        "posterior": posterior,
         "sample_stats": stats,
-        "log_likelihood": {s.observed: loglik},
-        "posterior_predictive": {s.observed: predictive},
         "observed_data": {s.observed: np.asarray(data[s.observed])},
     }
+    if replayed is not None:
+        draws, loglik, predictive, deterministic = replayed
+        every = len(draws) == next(iter(posterior.values())).shape[1]
+        if every:  # deterministic sites beside the draws they belong to
+            groups["posterior"] = {**posterior, **deterministic}
+        groups["log_likelihood"] = _at_draws({s.observed: loglik}, draws, dims, coords)
+        groups["posterior_predictive"] = _at_draws({s.observed: predictive, **({} if every else deterministic)},
+                                                   draws, dims, coords)
     if const:
         groups["constant_data"] = const
     attrs.update({
@@ -157,6 +167,21 @@ def fit(model, data: dict, method="nuts", **settings):
         "torch_version": str(torch.__version__),  # TorchVersion would not write to NetCDF
     })
     return build_tree(groups, attrs, dims, coords)
+
+
+def _replayed(model, data, posterior, s):
+    """(draw indices, log-likelihood, replicated data, deterministic sites) of the draws the
+    ``predictive`` setting asks for, or None for ``predictive=False``."""
+    if s.predictive is False:
+        return None
+    num_chains, num_draws = next(iter(posterior.values())).shape[:2]
+    draws = thinned(num_draws, num_chains, s.predictive)
+    return (draws, *replay(model, data, posterior, s.observed, s.progress, draws))
+
+
+def _at_draws(arrays, draws, dims, coords):
+    """A (chain, draw, ...) group whose ``draw`` coordinate is the replayed draws' indices."""
+    return _dataset(arrays, SAMPLE_DIMS, dims, coords).assign_coords(draw=draws)
 
 
 def _scene_layout(scene, data, observed, dims, coords, constant_data):

@@ -36,12 +36,15 @@ class Method:
     at the MAP (``map_starts`` searches, ``bayespd.infer.mode``); ``modes="weighted"`` fits
     every mode found (``map_starts`` > 1; ``bayespd.infer.mixture``); ``observed`` names the
     likelihood site; ``dims``, ``coords``, ``scene`` and ``constant_data`` lay out the tree.
+    ``predictive``: replay the model at every draw (True: ``log_likelihood``,
+    ``posterior_predictive``, deterministic sites), at ``n`` draws evenly spaced along each
+    chain (an int: a forward solve per replayed draw is the cost), or not at all (False).
     """
 
     name: ClassVar[str]  # the key in the registry and the tree's ``method`` attribute
     searches_map: ClassVar[bool] = False  # runs the MAP search whatever ``init`` says
     recorded: ClassVar[tuple] = ("num_samples", "seed", "observed", "init", "init_values",
-                                 "map_starts", "modes")  # to the tree's ``settings``
+                                 "map_starts", "modes", "predictive")  # to the tree's ``settings``
 
     num_samples: int = 500
     seed: int = 0
@@ -55,8 +58,12 @@ class Method:
     coords: dict | None = None
     scene: object = None
     constant_data: dict | None = None
+    predictive: bool | int = True
 
     def __post_init__(self):
+        if not isinstance(self.predictive, bool):
+            count("predictive", self.predictive, 1, "pass True (every draw), False (none) or the "
+                  "number of draws to replay")
         count("num_samples", self.num_samples, 1, "ask for at least one draw per chain")
         count("map_starts", self.map_starts, 1, "the MAP search needs at least one start")
         count("seed", self.seed, 0)

@@ -1,4 +1,8 @@
-"""Deterministic inversion baselines."""
-from bayespd.inverse.tikhonov import TikhonovResult, tikhonov
+"""Deterministic inversion baselines.
+
+``tikhonov`` (the function; its module is ``least_squares``, so that the name
+``bayespd.inverse.tikhonov`` is the function and nothing shadows it), ``vfm`` (the PD Virtual
+Fields Method) and ``vfm_defaults`` (the horizon and ramp chosen by the VFM residual)."""
+from bayespd.inverse.least_squares import TikhonovResult, tikhonov
 
 __all__ = ["tikhonov", "TikhonovResult"]

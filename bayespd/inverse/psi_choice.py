@@ -6,7 +6,7 @@
   t = log psi, where the signed curvature
   kappa = (x' y'' - x'' y') / (x'^2 + y'^2)^(3/2) is largest.
 
-Both call :func:`bayespd.inverse.tikhonov.tikhonov` with warm starts and return a
+Both call :func:`bayespd.inverse.tikhonov` (module ``least_squares``) with warm starts and return a
 :class:`PsiChoice` holding the sweep, so both choices can be reported side by side; a sweep
 made once with :func:`psi_sweep` can be passed to both (``sweep=``).
 """
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bayespd.inverse.tikhonov import TikhonovResult, tikhonov
+from bayespd.inverse.least_squares import TikhonovResult, tikhonov
 
 
 @dataclass

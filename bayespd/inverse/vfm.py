@@ -31,11 +31,16 @@ need no data there; :class:`VirtualWork` refuses fields that need missing data.
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.optimize
 import torch
+
+
+class ExactlyDeterminedWarning(UserWarning):
+    """As many virtual fields as unknowns: the VFM residual is zero by construction."""
 
 
 def pd_constants(material, K, G):
@@ -248,6 +253,11 @@ def identify(work: VirtualWork, u, *, observed=None) -> VFMResult:
     if work.n_fields < 2 or np.linalg.matrix_rank(A / scale, tol=1e-12) < 2:
         raise ValueError("need at least two independent virtual fields to identify (K, G): "
                          f"got {work.n_fields} giving a rank-{np.linalg.matrix_rank(A / scale, tol=1e-12)} system")
+    if work.n_fields == 2:
+        warnings.warn("two virtual fields for two unknowns: the system is exactly determined, so "
+                      "Phi = 0 whatever the model error and the residual says nothing about the "
+                      "fit; add fields (e.g. virtual_fields.interior_bumps, or "
+                      "vfm_defaults.estimate's defaults)", ExactlyDeterminedWarning, stacklevel=2)
     a = np.linalg.lstsq(A / scale, b, rcond=None)[0] / scale
     K, G = moduli_from_constants(work.material, a[0], a[1])
     r = A @ a - b

@@ -25,6 +25,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 import torch
 
+from bayespd.linalg import reuse
 from bayespd.linalg.config import current_settings
 
 try:  # optional extra `fast`
@@ -179,6 +180,11 @@ class Pattern:
         A = self.matrix(values)
         if not np.all(np.isfinite(A.data)):
             raise NotPositiveDefiniteError("stiffness has non-finite entries (check parameters)")
+        if reuse.active():  # a reference factor of this pattern preconditions CG (linalg.reuse)
+            return reuse.factor(self, A, lambda: self._fresh_factor(A, backend, ordering))
+        return self._fresh_factor(A, backend, ordering)
+
+    def _fresh_factor(self, A, backend: str, ordering: str | None) -> "Factor":
         if backend == "cholmod":
             if cholmod is None:
                 raise ValueError("backend 'cholmod' needs scikit-sparse: install the 'fast' extra")

@@ -35,9 +35,10 @@ ROLLER = _patch(_X_ROLLER, 0.0)
 LOAD = _patch(_X_LOAD, WIDTH - PATCH_DEPTH)
 
 
-def params(delta: float) -> dict:
-    """PD params {K, G, delta} of the beam material (Delorme 2018 §6.1: K = 3333.33, G = 1538.46)."""
-    K, G = bp.moduli_from_young(YOUNG, POISSON)
+def params(delta: float, nu: float = POISSON) -> dict:
+    """PD params {K, G, delta} of the beam material (Delorme 2018 §6.1: K = 3333.33, G = 1538.46
+    at nu = 0.3; K is the 3D bulk modulus, as bp.LPS takes it in plane stress too)."""
+    K, G = bp.moduli_from_young(YOUNG, nu)
     return {"K": float(K), "G": float(G), "delta": float(delta)}
 
 
@@ -61,10 +62,12 @@ REFERENCE_MESH = {"h": 0.5, "order": 2, "grading": 6}  # changes < 2e-5 from h =
 CHECK_MESH = {"h": 1.0, "order": 2, "grading": 6}
 
 
-def fe_solution(h: float = 0.5, order: int = 2, grading: int = 6, stiffness=None) -> FESolution:
+def fe_solution(h: float = 0.5, order: int = 2, grading: int = 6, stiffness=None,
+                nu: float = POISSON) -> FESolution:
     """The FE peer on a Q``order`` mesh of size h graded toward the support patches: the same
-    pin, roller and load patches (``stiffness``: an anisotropic Voigt tensor, see solve_box)."""
-    return solve_box((LENGTH, WIDTH), h, YOUNG, POISSON,
+    pin, roller and load patches (``stiffness``: an anisotropic Voigt tensor, see solve_box;
+    ``nu``: Poisson's ratio, E = YOUNG)."""
+    return solve_box((LENGTH, WIDTH), h, YOUNG, nu,
                      [Support(PIN, (0.0, 0.0)), Support(ROLLER, (None, 0.0))],
                      [BodyLoad(LOAD, (0.0, -FORCE))], order=order, plane="stress",
                      thickness=THICKNESS, grading=grading, stiffness=stiffness)

@@ -1,5 +1,5 @@
 """The square of Turner 2015 §4 (Fig. 2), shared by tikhonov_constant.py, tikhonov_heterogeneous.py
-and tests/inverse/test_tikhonov.py: L = 1000, cells of size h with the centroids of the outer cells on
+and tests/inverse/test_least_squares.py: L = 1000, cells of size h with the centroids of the outer cells on
 the edges (footnote 4: h = 100 gives 11 x 11 = 121 cells), the bottom edge (y = 0) fixed, a
 force F = (1000, 1000) spread over the cells of the top edge (footnote 3), plane strain (eq 5).
 

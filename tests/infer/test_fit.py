@@ -392,3 +392,27 @@ def test_a_diverging_learning_rate_is_named(plate):
     with pytest.raises(ValueError, match=r"SVI diverged at step \d+ of 50 with svi_lr=1e\+06: .*"
                                          r"lower svi_lr \(e.g. 100000\)"):
         fit(make(), {"y": u}, "svi", svi_steps=50, svi_lr=1e6, num_samples=5, progress=False)
+
+
+@pytest.mark.parametrize("predictive", [False, 7, True])
+def test_predictive_on_demand(y, predictive):
+    """predictive=False replays nothing; n replays about n draws evenly spaced (the draw
+    coordinate names them, and their log-likelihood is that of those posterior draws);
+    True replays all 20."""
+    tree = fit(model, {"y": y}, "laplace", num_samples=20, progress=False, predictive=predictive)
+    if predictive is False:
+        assert "log_likelihood" not in tree and "posterior_predictive" not in tree
+        return
+    draws = tree["log_likelihood"]["draw"].values
+    expected = np.arange(20) if predictive is True else np.round(np.linspace(0, 19, 7)).astype(int)
+    np.testing.assert_array_equal(draws, expected)
+    assert tree["posterior_predictive"]["y"].shape[:2] == (1, len(expected))
+    full = fit(model, {"y": y}, "laplace", num_samples=20, progress=False)
+    np.testing.assert_allclose(tree["log_likelihood"]["y"].values, full["log_likelihood"]["y"].sel(draw=draws).values,
+                               rtol=1e-14)
+
+
+@pytest.mark.parametrize("bad", [0, -3, 2.5, "all"])
+def test_predictive_refuses_what_is_no_count(y, bad):
+    with pytest.raises((ValueError, TypeError), match="predictive must be an integer"):
+        fit(model, {"y": y}, "laplace", num_samples=20, progress=False, predictive=bad)

@@ -53,3 +53,11 @@ def test_replicated_data_follow_the_likelihood_at_each_draw():
     r = (predictive - 3.0).reshape(-1)
     assert abs(r.mean()) < 4 / np.sqrt(r.size)
     assert stats.kstest(r, "norm").pvalue > 1e-3
+
+
+def test_thinned_draws_are_evenly_spaced_per_chain():
+    from bayespd.infer.replay import thinned
+    np.testing.assert_array_equal(thinned(10, 2, True), np.arange(10))
+    np.testing.assert_array_equal(thinned(10, 2, 4), [0, 9])          # 2 per chain
+    np.testing.assert_array_equal(thinned(10, 1, 3), [0, 4, 9])       # round(4.5) = 4
+    np.testing.assert_array_equal(thinned(10, 1, 50), np.arange(10))  # never more than there are

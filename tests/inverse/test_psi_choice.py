@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from bayespd.inverse.psi_choice import discrepancy, lcurve, lcurve_corner, psi_sweep
-from bayespd.inverse.tikhonov import tikhonov
+from bayespd.inverse.least_squares import tikhonov
 from bayespd.scenes.tikhonov_square import DELTA, K0, MU0, square_scene
 
 TRUTH = {"K": K0, "G": MU0}

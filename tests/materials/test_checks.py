@@ -77,3 +77,33 @@ def test_infinite_bulk_modulus_is_refused():
     p = bp.grid_2d(6, 6, 1.0)
     with pytest.raises(NonFiniteParameterError, match="finite moduli"):
         bp.LPS(p, bp.find_bonds(p, 2.0), plane="strain").numeric_stiffness({"K": float("inf"), "G": 1.0, "delta": 2.0})
+
+
+@pytest.mark.parametrize("E,nu", [(4000.0, 0.3), (1.0, 0.0), (2.5, -0.5), (70e9, 0.499), (3.0, 0.37)])
+@pytest.mark.parametrize("plane", [None, "stress", "strain"])
+def test_young_from_moduli_is_the_exact_inverse(E, nu, plane):
+    """(E, nu) -> (K, G) -> (E, nu) to a few ulps (condition 1 / (1 - 2 nu) at nu = 0.499),
+    and (K, G) -> (E, nu) -> (K, G); the same answer for every plane (K is the 3D modulus)."""
+    E2, nu2 = (float(v) for v in bp.young_from_moduli(*bp.moduli_from_young(E, nu), plane=plane))
+    assert E2 == pytest.approx(E, rel=1e-13) and nu2 == pytest.approx(nu, abs=1e-14)
+    K, G = (float(v) for v in bp.moduli_from_young(E, nu))
+    K2, G2 = (float(v) for v in bp.moduli_from_young(*bp.young_from_moduli(K, G, plane=plane)))
+    assert K2 == pytest.approx(K, rel=1e-12) and G2 == pytest.approx(G, rel=1e-14)
+
+
+def test_young_from_moduli_on_fields_and_against_the_plane_stress_kappa():
+    """kappa_stress = 9 K G / (3 K + 4 G) = E / (2 (1 - nu)): the in-plane modulus of LPS."""
+    K, G = torch.tensor([1.0, 2.0, 5.0]), torch.tensor([0.5, 1.5, 1.0])
+    E, nu = bp.young_from_moduli(K, G, plane="stress")
+    assert E.shape == nu.shape == (3,)
+    p = bp.grid_2d(4, 4, 1.0)
+    kappa = bp.LPS(p, bp.find_bonds(p, 2.0), plane="stress").kappa(K, G)
+    torch.testing.assert_close(kappa, E / (2 * (1 - nu)), rtol=1e-14, atol=0)
+
+
+@pytest.mark.parametrize("K,G,plane,match", [(-1.0, 1.0, None, r"K must be positive.*3D bulk modulus"),
+                                             (1.0, float("nan"), None, r"G contains NaN.*shear modulus"),
+                                             (1.0, 1.0, "3d", r"plane must be one of.*3D bulk modulus")])
+def test_young_from_moduli_refuses_bad_input_by_name(K, G, plane, match):
+    with pytest.raises(ValueError, match=match):
+        bp.young_from_moduli(K, G, plane=plane)

@@ -12,7 +12,7 @@ import torch
 from pyro import poutine
 
 from bayespd.infer import fit
-from bayespd.inverse.tikhonov import tikhonov
+from bayespd.inverse.least_squares import tikhonov
 from bayespd.scenes.tikhonov_square import MU0, SIDE, graded_moduli, square_scene
 from bayespd.models.heterogeneous_field import heterogeneous_field, tikhonov_settings
 

@@ -27,6 +27,8 @@ import scipy.optimize
 import torch
 
 from bayespd.inverse.regularization import regularization_operator
+from bayespd.inverse.stopping import Monitor, Stop, projected_gradient
+from bayespd.validate import count, positive
 
 METHODS = ("L-BFGS-B", "Newton-CG", "trust-constr")
 
@@ -51,6 +53,7 @@ class TikhonovResult:
     penalty_norm: float = math.nan
     hessp_evaluations: int = 0
     history: list = field(default_factory=list)
+    reason: str = ""  # why it stopped: the test that passed, or why none did
 
 
 class _Unknowns:
@@ -165,22 +168,16 @@ class Objective:
         return sum(0.5 * self.psi[k] * (t**2).sum() for k, t in self.penalty_terms(zt).items())
 
     def __call__(self, z: np.ndarray):
-        """(J, grad J) at z: one factorisation, one forward and one adjoint solve."""
+        """(J, grad J) at z: one factorisation, one forward and one adjoint solve (none when
+        z is the point evaluated last)."""
+        if np.array_equal(self.last.get("z"), z):
+            return self.last["J"], self.last["g"]
         self.evaluations += 1
         zt = torch.tensor(z, requires_grad=True)
         J = 0.5 * (self.residual(zt) ** 2).sum() + self.penalty(zt)
         (g,) = torch.autograd.grad(J, zt)
-        self.last = {"z": np.array(z, copy=True), "J": float(J.detach())}
-        if self.evaluations == 1:
-            self.first_grad_norm = float(g.norm())
-        return float(J.detach()), g.numpy()
-
-    def gradient_norm(self, z: np.ndarray) -> float:
-        """|grad J| at z, not counted as an optimiser evaluation."""
-        n = self.evaluations
-        g = self(z)[1]
-        self.evaluations = n
-        return float(np.linalg.norm(g))
+        self.last = {"z": np.array(z, copy=True), "J": float(J.detach()), "g": g.numpy()}
+        return self.last["J"], self.last["g"]
 
     def hessp(self, z: np.ndarray, v: np.ndarray) -> np.ndarray:
         """H v, H the exact Hessian (double backward through the solve) or Gauss-Newton's."""
@@ -204,8 +201,8 @@ class Objective:
 
 def tikhonov(scene, y, init: dict, *, fixed: dict | None = None, mask=None, sigma: float = 1.0,
              psi=0.0, ref: dict | None = None, bounds: dict | None = None,
-             gtol: float = 1e-12, maxiter: int = 500, L=None, method: str = "L-BFGS-B",
-             hessian: str = "exact") -> TikhonovResult:
+             gtol: float = 1e-12, ftol: float = 1e-13, maxiter: int = 500, maxfun: int = 2000,
+             stall: int = 20, L=None, method: str = "L-BFGS-B", hessian: str = "exact") -> TikhonovResult:
     """Estimate the parameters named in ``init`` (starting values) from observations ``y``.
 
     ``init`` values are scalars or per-particle arrays of shape (N,). ``fixed`` holds the
@@ -216,9 +213,23 @@ def tikhonov(scene, y, init: dict, *, fixed: dict | None = None, mask=None, sigm
     ``mask`` (default: the observation's own) marks observed entries; data outside it may be NaN.
     ``method`` is one of METHODS; ``hessian`` ("exact" or "gauss-newton") is used by the
     Hessian-based methods.
+
+    Stopping (``bayespd.inverse.stopping``; scale-free: the optimiser minimises
+    J / (J(init) gtol), so that its own gradient test at 1 is ours and no absolute threshold
+    inside it, e.g. Newton-CG's curvature floor, acts before ours):
+    ``gtol`` bounds the projected gradient of J / J(init) in log-parameters, ``ftol`` the
+    relative decrease of J per iteration, ``maxiter`` the iterations, ``maxfun`` the
+    evaluations of J; ``stall`` evaluations in a row without a relative decrease above
+    ``ftol`` end a stalled run. ``converged`` is true only if the gradient or decrease test
+    passed; ``reason`` says which, or why the run stopped without converging.
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    positive("gtol", gtol, "a tolerance on the projected gradient of J / J(init), e.g. 1e-12")
+    positive("ftol", ftol, "a tolerance on the relative decrease of J per iteration, e.g. 1e-13")
+    count("maxiter", maxiter, 1, "allow at least one iteration")
+    count("maxfun", maxfun, 2, "allow at least two evaluations of J")
+    count("stall", stall, 2, "a stall is at least two evaluations without progress, e.g. 20")
     f = Objective(scene, y, init, fixed=fixed, mask=mask, sigma=sigma, psi=psi, ref=ref, L=L,
                   hessian=hessian)
     unknowns = f.unknowns
@@ -232,30 +243,53 @@ def tikhonov(scene, y, init: dict, *, fixed: dict | None = None, mask=None, sigm
     bounded = bool(np.isfinite(lo).any() or np.isfinite(hi).any())
     if method == "Newton-CG" and bounded:
         raise ValueError("Newton-CG takes no bounds: use method='trust-constr' or 'L-BFGS-B'")
+    z0 = np.clip(f.z0, lo, hi)
+    J0 = f(z0)[0]
+    scale = (J0 if J0 > 0 else 1.0) * gtol  # the optimisers' own gradient tests at 1 are ours
+    monitor = Monitor(ftol, maxfun, stall)
+    monitor.evaluated(z0, J0)
     history = []
+
+    def scaled(z):
+        J, g = f(z)
+        monitor.evaluated(z, J)
+        return J / scale, g / scale
 
     def callback(intermediate_result):
         z = intermediate_result.x
-        history.append(f.last["J"] if np.array_equal(f.last.get("z"), z) else f(z)[0])
+        history.append(f(z)[0])
+        monitor.iteration(history[-1])
 
-    options = {"L-BFGS-B": {"gtol": gtol, "ftol": 1e-15, "maxiter": maxiter},
-               "Newton-CG": {"xtol": gtol, "maxiter": maxiter},
-               "trust-constr": {"gtol": gtol, "xtol": 1e-14, "maxiter": maxiter}}[method]
-    extra = {} if method == "L-BFGS-B" else {"hessp": f.hessp}
+    options = {"L-BFGS-B": {"gtol": 1.0, "ftol": 0.0, "maxiter": maxiter, "maxfun": maxfun},
+               "Newton-CG": {"xtol": 1e-14, "maxiter": maxiter},
+               "trust-constr": {"gtol": 1.0, "xtol": 1e-14, "maxiter": maxiter}}[method]
+    extra = {} if method == "L-BFGS-B" else {"hessp": lambda z, v: f.hessp(z, v) / scale}
     if bounded:
         extra["bounds"] = list(zip(lo, hi)) if method == "L-BFGS-B" else scipy.optimize.Bounds(lo, hi)
     start = time.perf_counter()
-    res = scipy.optimize.minimize(f, f.z0, jac=True, method=method, callback=callback,
-                                  options=options, **extra)
+    try:
+        res = scipy.optimize.minimize(scaled, z0, jac=True, method=method, callback=callback,
+                                      options=options, **extra)
+        z, message, stop = res.x, str(res.message), None
+        iterations = int(res.nit)
+    except Stop as s:
+        z, message, stop, iterations = monitor.best_z, s.reason, s, len(history)
     wall = time.perf_counter() - start
+    J, g = f(z)
+    pg = projected_gradient(z, g * gtol / scale, lo, hi)
+    if pg <= gtol:
+        converged, reason = True, f"projected gradient {pg:.3g} <= gtol={gtol:g}"
+    elif stop is not None:
+        converged, reason = stop.converged, stop.reason
+    else:
+        converged = False
+        reason = (f"maxiter={maxiter} iterations spent" if iterations >= maxiter else
+                  f"the optimiser stopped ({message}) with projected gradient {pg:.3g} > gtol={gtol:g}")
     with torch.no_grad():
-        zt = torch.as_tensor(res.x)
+        zt = torch.as_tensor(z)
         r = f.residual(zt) * sigma
         pen = math.sqrt(sum(float((t**2).sum()) for t in f.penalty_terms(zt).values()))
     rms = float(torch.sqrt((r**2).sum() / f.w.sum()))
-    # scipy reports "precision loss" when J has reached round-off: converged if |grad J| fell
-    converged = bool(res.success) or (res.nit < maxiter
-                                      and f.gradient_norm(res.x) <= 1e-8 * f.first_grad_norm)
-    return TikhonovResult(unknowns.params(res.x), float(res.fun), rms, int(res.nit), f.evaluations,
-                          wall, converged, str(res.message), float(r.norm()), pen,
-                          f.hessp_evaluations, history)
+    return TikhonovResult(unknowns.params(z), J, rms, iterations, f.evaluations,
+                          wall, converged, message, float(r.norm()), pen,
+                          f.hessp_evaluations, history, reason)

@@ -4,7 +4,7 @@ tests/inverse/test_psi_choice.py)."""
 import numpy as np
 import pytest
 
-from bayespd.inverse.tikhonov import Objective, tikhonov
+from bayespd.inverse.least_squares import Objective, tikhonov
 from tests.conftest import plate_scene
 from bayespd.scenes.tikhonov_square import DELTA, K0, MU0, graded_moduli, square_scene
 
@@ -180,3 +180,55 @@ def test_bounds_that_exclude_the_truth_are_active(square, method):
     best_K = tikhonov(scene, y, {"K": 300.0}, fixed={"delta": DELTA, "G": 350.0}, sigma=1e-3).params["K"]
     assert res.params["G"] == pytest.approx(350.0, rel=1e-6)
     assert res.params["K"] == pytest.approx(best_K, rel=1e-6)
+
+
+@pytest.fixture(scope="module")
+def plate_data():
+    """Same-model data on the small plate, and the same with seeded noise of 1e-3 mm."""
+    import torch
+    scene = plate_scene(nx=14, ny=8)
+    y = scene.observe(scene.solve({"K": 3000.0, "G": 1400.0, "delta": 2.2})).detach()
+    return scene, y, y + 1e-3 * torch.randn(y.shape, generator=torch.Generator().manual_seed(0))
+
+
+@pytest.mark.parametrize("unit", [1.0, 1e-3, 1e-6])
+def test_bounds_in_any_units_converge_to_the_answer(plate_data, unit):
+    """Data in mm, m or km-scaled units with sigma = 1 (J ~ unit^2): the objective is scaled by
+    its start, so no absolute threshold ends the run at the start (it used to stop after
+    2 evaluations, converged=True, at unit 1e-3 with bounds); the projected gradient test
+    passes and the moduli (scaled by 1 / unit) are recovered to 1e-8."""
+    scene, y, _ = plate_data
+    res = tikhonov(scene, y * unit, {"K": 1500.0 / unit, "G": 2000.0 / unit}, fixed={"delta": 2.2},
+                   bounds={"K": (300.0 / unit, 3e4 / unit), "G": (140.0 / unit, 1.4e4 / unit)})
+    assert res.converged and res.reason.startswith("projected gradient")
+    assert res.params["K"] * unit == pytest.approx(3000.0, rel=1e-8)
+    assert res.params["G"] * unit == pytest.approx(1400.0, rel=1e-8)
+
+
+@pytest.mark.parametrize("method", ["L-BFGS-B", "Newton-CG"])
+def test_a_stall_at_the_round_off_floor_is_not_converged(plate_data, method):
+    """gtol and ftol below round-off cannot pass: the run stops after `stall` evaluations
+    without progress, at the (noisy-data) optimum, and says so instead of claiming success."""
+    scene, _, noisy = plate_data
+    best = tikhonov(scene, noisy, {"K": 1500.0, "G": 2000.0}, fixed={"delta": 2.2})
+    res = tikhonov(scene, noisy, {"K": 1500.0, "G": 2000.0}, fixed={"delta": 2.2}, gtol=1e-30,
+                   ftol=1e-300, stall=10, method=method)
+    assert best.converged and not res.converged
+    assert res.reason.startswith("stalled: 10 evaluations") and "raise gtol or ftol" in res.reason
+    assert res.params["K"] == pytest.approx(best.params["K"], rel=1e-6)
+
+
+def test_maxfun_ends_the_run_unconverged(plate_data):
+    scene, _, noisy = plate_data
+    res = tikhonov(scene, noisy, {"K": 1500.0, "G": 2000.0}, fixed={"delta": 2.2}, maxfun=5)
+    assert not res.converged and res.reason == "maxfun=5 evaluations spent: raise maxfun"
+    assert res.evaluations <= 5
+
+
+@pytest.mark.parametrize("kw,match", [({"gtol": 0.0}, "gtol must be positive"), ({"ftol": -1.0}, "ftol must be positive"),
+                                      ({"maxfun": 1}, "maxfun must be an integer >= 2"),
+                                      ({"stall": 1.5}, "stall must be an integer")])
+def test_bad_stopping_controls_are_refused_by_name(plate_data, kw, match):
+    scene, y, _ = plate_data
+    with pytest.raises((ValueError, TypeError), match=match):
+        tikhonov(scene, y, {"K": 1500.0, "G": 2000.0}, fixed={"delta": 2.2}, **kw)

@@ -1,0 +1,122 @@
+"""The PD-VFM with defaults fit for measured data: interior virtual fields, and the horizon
+m = delta / h and partial-volume ramp chosen by the residual at the estimate (no truth needed).
+
+Fields (:func:`interior_fields`): one *load field* u*_0 = s(x) d, d the unit direction of the
+total load and s = d_D / (d_D + d_L) (d_D, d_L: distances to the nearest constrained and
+loaded particle), 0 on every constrained particle and 1 on the loaded ones, so that
+W*_ext = |F| and it alone fixes the scale; and C1 *bumps* (``virtual_fields.bump``), each
+kept only where its support, widened by ``clearance``, lies inside the body and holds no
+constrained or loaded particle: they see no free surface (no PD surface effect), W*_ext = 0,
+and constrain the ratio of the moduli (Delorme 2018 eq 25 with many fields).
+
+Selection (:func:`estimate`): for every candidate (m, rule), the closed form
+(``vfm.identify``) gives a = argmin_a sum_k r_k(a)^2 and the residual
+
+    Phi(m, rule) = sqrt(sum_k r_k(a*)^2 / sum_k (W*_ext,k)^2)      (Delorme 2018 eq 25)
+
+at that estimate; we take the (m, rule) of least Phi. The fields are the same functions for
+every candidate (the clearance is that of the largest horizon) and so is W*_ext: Phi then
+compares how nearly each discrete operator admits the measured field as an equilibrium of
+*some* isotropic (K, G), i.e. the model error of the operator, not the noise. It needs more
+fields than the two unknowns: with two, Phi = 0 for every candidate and nothing is chosen.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+import bayespd as bp
+from bayespd.inverse import virtual_fields as vf
+from bayespd.inverse.vfm import VFMResult, VirtualWork, identify
+from bayespd.validate import count
+
+MS = (2, 3, 4, 5)
+RULES = ("linear", "smooth")
+
+
+def load_field(scene):
+    """u*_0 = s(x) d of the module docstring, as a callable."""
+    p = scene.particles
+    fixed = scene.constraints.fixed_particles
+    loaded = np.abs(scene.force.numpy()).sum(1) > 0
+    total = scene.force.numpy().sum(0)
+    if not fixed.any() or not loaded.any() or not np.any(total):
+        raise ValueError("the default VFM fields need a scene with Dirichlet particles and a "
+                         "non-zero total load: pass fields= for displacement-controlled scenes")
+    d = total / np.linalg.norm(total)
+    to_fixed, to_loaded = cKDTree(p.x[fixed]), cKDTree(p.x[loaded])
+
+    def u(x):
+        dD, dL = to_fixed.query(x)[0], to_loaded.query(x)[0]
+        return (dD / np.maximum(dD + dL, 1e-300))[:, None] * d[None, :]
+
+    return u
+
+
+def interior_fields(scene, clearance: float):
+    """[load field] + the bumps of a regular cell grid over the bounding box that keep
+    ``clearance`` from every free surface, hole, constrained and loaded particle."""
+    p = scene.particles
+    x, h = p.x, p.h
+    lo, hi = x.min(0) + clearance, x.max(0) - clearance
+    if np.any(hi <= lo):
+        raise ValueError(f"clearance {clearance:g} leaves no interior: the body is too thin for "
+                         "interior fields at this horizon; pass fields= or smaller ms=")
+    size = (hi - lo).min()
+    counts = np.maximum(np.round((hi - lo) / size).astype(int), 1)
+    radius = (hi - lo) / counts / 2
+    body = cKDTree(x)
+    busy = cKDTree(x[scene.constraints.fixed_particles | (np.abs(scene.force.numpy()).sum(1) > 0)])
+    fields = [load_field(scene)]
+    for idx in np.ndindex(*counts):
+        centre = lo + radius * (2 * np.asarray(idx) + 1)
+        a, b = centre - radius - clearance, centre + radius + clearance
+        grid = np.stack(np.meshgrid(*[np.arange(a[k], b[k] + h / 2, h / 2) for k in range(p.dim)]), -1)
+        grid = grid.reshape(-1, p.dim)
+        if body.query(grid)[0].max() > 0.75 * h * np.sqrt(p.dim):  # a hole or an edge inside
+            continue
+        if busy.query(grid)[0].min() <= h:
+            continue
+        fields += [vf.bump(centre, radius, c) for c in range(p.dim)]
+    return fields
+
+
+def with_rule(scene, rule: str, delta_max: float):
+    """The scene rebuilt with bonds of ``rule`` found at ``delta_max`` (same law, constraints,
+    loads and observation)."""
+    m = scene.material
+    material = type(m)(m.particles, bp.find_bonds(m.particles, delta_max, rule), plane=m.plane,
+                       influence=m.influence, surface_correction=m.surface_correction)
+    return bp.Scene(material, scene.dirichlet, scene.loads, scene.observation)
+
+
+def estimate(scene, u, *, observed=None, fields=None, ms=MS, rules=RULES) -> VFMResult:
+    """K, G of the LPS ``scene`` from the measured field ``u`` (N, dim; NaN where not
+    measured) by the closed-form PD-VFM at the (m, rule) of least residual (module
+    docstring). ``fields`` default to :func:`interior_fields` with clearance 2 max(ms) h + h.
+    The result's ``extra`` holds the chosen ``m``, ``rule``, ``delta`` and every candidate's
+    ``phi`` and estimates."""
+    ms = tuple(count("ms entry", m, 1, "m = delta / h is at least 1") for m in ms)
+    if not ms or not rules or set(rules) - set(RULES):
+        raise ValueError(f"ms must be a non-empty tuple of integers and rules a subset of {RULES}")
+    h = scene.particles.h
+    if fields is None:
+        fields = interior_fields(scene, 2 * max(ms) * h + h)
+    if len(fields) <= 2:
+        raise ValueError(f"{len(fields)} virtual fields: the system for (K, G) is exactly determined, "
+                         "Phi = 0 at every m and the residual cannot choose; give at least three fields")
+    candidates = []
+    for rule in rules:
+        sc = with_rule(scene, rule, max(ms) * h)
+        for m in ms:
+            res = identify(VirtualWork(sc, fields, {"delta": m * h}), u, observed=observed)
+            candidates.append({"m": m, "rule": rule, "phi": res.phi, "K": res.params["K"],
+                               "G": res.params["G"], "result": res})
+    best = min(candidates, key=lambda c: c["phi"])
+    table = [{k: v for k, v in c.items() if k != "result"} for c in candidates]
+    extra = dict(best["result"].extra, m=best["m"], rule=best["rule"], delta=best["m"] * h,
+                 candidates=table, fields=len(fields))
+    return dataclasses.replace(best["result"], method="closed_form, (m, rule) by least residual",
+                               extra=extra)
