@@ -34,7 +34,7 @@ from scipy.spatial import cKDTree
 
 from bayespd.discretize import Particles
 from bayespd.observe import GridObservation, LinearObservation, edge_mask, locate, model_data
-from bayespd.validate import _numbers, finite, in_range, positive
+from bayespd.validate import numbers, finite, in_range, positive
 
 LATTICE_TOL = 1e-3  # points within this fraction of h of a lattice node lie on it
 
@@ -91,7 +91,7 @@ def _layout(name: str, a, order, nx: int, ny: int) -> np.ndarray:
         if order is not None and _order(order) != named:
             raise ValueError(f"{name} has dims {tuple(dims)} (order {named!r}) but order={order!r}: drop order")
         order = named
-    a = _numbers(a, name)
+    a = numbers(a, name)
     if order is None:
         if nx == ny:
             raise ValueError(f"{name} is a square {nx} x {ny} grid, so its shape cannot tell its index order: "
@@ -170,17 +170,17 @@ def from_point_field(points, displacement, *, sigma=None, valid=None, particles:
     ``valid`` (n,) or (n, dim): the user's own mask; ``edge``: drop points closer than this
     to an edge of the body (Delorme 2018 Table 4); ``body``: a predicate x -> bool of the
     lattice nodes that are material (``particles=None`` only)."""
-    points = finite("points", _numbers(points, "points"), "drop the rows without a position")
+    points = finite("points", numbers(points, "points"), "drop the rows without a position")
     if points.ndim != 2 or points.shape[1] not in (2, 3) or len(points) == 0:
         raise ValueError(f"points must be a non-empty (n, 2) or (n, 3) array, got shape {points.shape}")
     n, dim = points.shape
-    y = _numbers(displacement, "displacement")
+    y = numbers(displacement, "displacement")
     if y.shape != (n, dim):
         raise ValueError(f"displacement must be (n, dim) = {(n, dim)} like points, got {y.shape}")
     positive("thickness", thickness)
     in_range("edge", edge, 0.0, np.inf, "pass the band to drop along the edges, >= 0", closed=(True, False))
     given = sigma
-    sigma = np.full(n, np.nan) if sigma is None else _numbers(sigma, "sigma").reshape(-1)
+    sigma = np.full(n, np.nan) if sigma is None else numbers(sigma, "sigma").reshape(-1)
     if sigma.shape != (n,):
         raise ValueError(f"sigma must have one value per point ({n}), got {sigma.shape}")
     ok = np.ones((n, dim), dtype=bool) if valid is None else np.asarray(valid)
@@ -206,8 +206,8 @@ def from_grid_field(x, y, u, v, *, order: str | None = None, sigma=None, valid=N
     ``u``, ``v`` (and ``sigma``, ``valid`` when given) laid out by ``order`` (module docstring;
     DataArrays with dims "x", "y" need none), as a :class:`Field` of nx * ny points listed x
     fastest; ``mapping``: the keywords of :func:`from_point_field` (particles, body, thickness, edge)."""
-    x = finite("x", _numbers(x, "x"), "pass the grid's x coordinates").reshape(-1)
-    y = finite("y", _numbers(y, "y"), "pass the grid's y coordinates").reshape(-1)
+    x = finite("x", numbers(x, "x"), "pass the grid's x coordinates").reshape(-1)
+    y = finite("y", numbers(y, "y"), "pass the grid's y coordinates").reshape(-1)
     nx, ny = len(x), len(y)
     if nx < 2 or ny < 2:
         raise ValueError(f"the grid needs at least 2 coordinates along x and y, got nx={nx}, ny={ny}")

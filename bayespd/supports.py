@@ -24,13 +24,13 @@ from scipy.spatial import cKDTree
 
 from bayespd.boundary import Dirichlet, Load
 from bayespd.discretize import Particles
-from bayespd.validate import _numbers, count, finite, positive
+from bayespd.validate import numbers, count, finite, positive
 
 SIDES = {"left": (0, 0), "right": (0, 1), "bottom": (1, 0), "top": (1, 1), "front": (2, 0), "back": (2, 1)}
 
 
 def _point(particles: Particles, point, name: str) -> np.ndarray:
-    point = finite(name, _numbers(point, name), "pass a finite position")
+    point = finite(name, numbers(point, name), "pass a finite position")
     if point.shape != (particles.dim,):
         raise ValueError(f"{name} must have {particles.dim} coordinates, got shape {point.shape}")
     return point
@@ -90,7 +90,7 @@ def traction(particles: Particles, side: str, traction, depth: float | None = No
     ``depth`` thick along it (default h: the outermost column)."""
     if side not in SIDES or SIDES[side][0] >= particles.dim:
         raise ValueError(f"side must be one of {list(SIDES)[: 2 * particles.dim]}, got {side!r}")
-    t = finite("the traction", _numbers(traction, "the traction"), "pass a finite force per area")
+    t = finite("the traction", numbers(traction, "the traction"), "pass a finite force per area")
     if t.shape != (particles.dim,):
         raise ValueError(f"the traction must have {particles.dim} components, got shape {t.shape}")
     depth = particles.h if depth is None else positive("depth", depth, "pass the layer thickness (>= h)")
