@@ -45,7 +45,7 @@ class Monitor:
     def evaluated(self, z, J: float) -> None:
         """Record J(z); raise Stop on a stall or when the budget is spent."""
         self.evaluations += 1
-        if J < self.best_J - self.ftol * abs(self.best_J):
+        if self.evaluations == 1 or J < self.best_J - self.ftol * abs(self.best_J):
             self.since_best = 0
         else:
             self.since_best += 1

@@ -49,6 +49,7 @@ def check_posterior(tree, truth, names):
         assert abs(draws.mean() - truth[k]) < 3 * draws.std(), (k, draws.mean(), draws.std(), truth[k])
 
 
+@pytest.mark.slow  # 45 s on 2 busy cores; NUTS itself is tested on conjugate models in test_fit
 def test_nuts_recovers_moduli_with_known_horizon(problem):
     """The default-suite NUTS check (about a minute): delta conditioned on its true value with
     ``pyro.poutine.condition`` (a user's way to fix a parameter), dense metric from SVI."""
