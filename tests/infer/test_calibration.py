@@ -51,7 +51,7 @@ def check_posterior(tree, truth, names):
 
 @pytest.mark.slow  # 45 s on 2 busy cores; NUTS itself is tested on conjugate models in test_fit
 def test_nuts_recovers_moduli_with_known_horizon(problem):
-    """The default-suite NUTS check (about a minute): delta conditioned on its true value with
+    """NUTS on a PD scene (about a minute, in `make test-all`): delta conditioned on its true value with
     ``pyro.poutine.condition`` (a user's way to fix a parameter), dense metric from SVI."""
     model, data, truth = problem
     known = poutine.condition(model, data={"delta": torch.tensor(TRUTH["delta"])})
