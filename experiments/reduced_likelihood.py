@@ -17,6 +17,8 @@ particles right of the clamp. Methods, each timed:
   plate at h_data (``TERM_DRAWS`` fine solves on a Sobol design, smooth in (log(G / K), delta);
   its one-off estimate timed, fine scene build included), then reduced NUTS with it: judged by
   whether its 90 % intervals cover the truth (the others target the coarse model's posterior).
+  Where the reduced model's error estimate over that posterior exceeds its tolerance, the basis
+  is rebuilt with ``ENRICH_DRAWS`` draws of it added and NUTS runs again (``enriched``).
 
 The reference posterior is full-model NUTS on the demo scene, and elsewhere the importance
 reweighting of the reduced posterior by the full model at ``--reference`` draws (k and ESS
@@ -59,6 +61,7 @@ SNAPSHOTS = {"demo": 100, "5k": 30, "40k": 30}  # the demo: solves cost ms; delt
 # per scene. Fine solves: 0.3 s (demo), ~3.5 s (5k, 19k particles, PCG); at 40k the reference
 # (h = 1/14 mm, ~150k particles) is out of reach on this host, so no term there.
 TERM_DRAWS = {"demo": 128, "5k": 16}
+ENRICH_DRAWS = 20  # posterior draws added to the basis where the term's posterior exceeds its tolerance
 REFERENCE_RTOL = 1e-6  # PCG of the fine solves: 3.5e-9 from rtol 1e-10 relative to max |u|, 35 % faster
 TERM_TARGET_S = 60.0  # the issue's for the 5k scene's one-off estimate
 
@@ -119,7 +122,7 @@ def true_errors(reduced, scene, tree, n: int) -> list[float]:
     return out
 
 
-def with_term(name, scene, reduced, data, nuts, noise_scale, truth, seed) -> dict:
+def with_term(name, scene, reduced, basis_draws, data, nuts, noise_scale, truth, seed) -> dict:
     """The error term of the reduced model against the plate at h_data (its fine scene built,
     TERM_DRAWS fine solves; all timed) and reduced NUTS with it. Its posterior is another (the
     fine plate's, approximately), so it is judged against the truth, not the reference."""
@@ -128,25 +131,44 @@ def with_term(name, scene, reduced, data, nuts, noise_scale, truth, seed) -> dic
     plate = demo.plate(h_data, 3 * h, scene.observation.points, "smooth")
     fine = bp.Scene(plate.material, plate.dirichlet, plate.loads, plate.observation, solver="pcg", rtol=REFERENCE_RTOL)
     log_ratio = (math.log(demo.NOMINAL["G"] / demo.NOMINAL["K"]), 0.5 * math.sqrt(2))  # its prior
-    draws = demo.ratio_design(TERM_DRAWS[name], seed, log_ratio, (h, 3 * h))
+    design = demo.ratio_design(TERM_DRAWS[name], seed, log_ratio, (h, 3 * h))
     with torch.no_grad():
-        term = bp.estimate_discrepancy(fine.predict, reduced.predict, draws, dependence="smooth",
+        term = bp.estimate_discrepancy(fine.predict, reduced.predict, design, dependence="smooth",
                                        features=bp.ElasticFeatures(), relative=True, explained=0.9999,
                                        points=scene.observation.points)
     term_s = time.perf_counter() - t0
     loo = math.sqrt(float(term.covariance().trace()) / term.mean.numel())
-    print(f"  error term: {len(draws)} fine solves ({fine.particles.n} particles) in {term_s:.1f} s, "
+    print(f"  error term: {len(design)} fine solves ({fine.particles.n} particles) in {term_s:.1f} s, "
           f"relative rms {term.rms:.3g}, leave-one-out {loo:.3g}", flush=True)
+    out = {"draws": len(design), "fine_particles": fine.particles.n, "estimate_s": term_s, "rank": term.rank,
+           "rms_relative": term.rms, "leave_one_out_rms_relative": loo, "design": "Sobol, prior ranges"}
+    out["nuts"], tree = term_fit(reduced, term, data, nuts, noise_scale, truth, "reduced NUTS with the term")
+    if out["nuts"]["reduced_error_estimate_max"] > reduced.tolerance:
+        # the term moves the posterior where the prior draws were sparse: rebuild the basis with
+        # draws of this posterior too (Cui, Marzouk & Willcox 2015) and fit again
+        t0 = time.perf_counter()
+        extra = bp.posterior_draws(tree, ENRICH_DRAWS, seed, names=["K", "G", "delta"], inflate=4.0,
+                                   bounds={"delta": (h, 3 * h)})
+        enriched = bp.ReducedScene(scene, basis_draws + extra, reduced.tolerance)  # validated on posterior draws
+        rebuild_s = time.perf_counter() - t0
+        out["enriched"], _ = term_fit(enriched, term, data, nuts, noise_scale, truth,
+                                      f"rebuilt with {ENRICH_DRAWS} posterior draws ({rebuild_s:.1f} s, rank {enriched.rank})")
+        out["enriched"].update(rebuild_s=rebuild_s, rank=enriched.rank, posterior_draws=ENRICH_DRAWS)
+    return out
+
+
+def term_fit(reduced, term, data, nuts, noise_scale, truth, label) -> tuple[dict, object]:
+    """Reduced NUTS with the error term: its figures and the tree."""
     t0 = time.perf_counter()
     tree = fit(elastic_plate(reduced, demo.NOMINAL, noise_scale, discrepancy=term), data, "nuts", **nuts)
     fit_s = time.perf_counter() - t0
     e = ess(tree)
     moments = demo.posterior_report(tree, truth)
-    print(f"  reduced NUTS with the term: {fit_s:.1f} s, ESS { {k: round(v) for k, v in e.items()} }, covers "
-          f"{ {k: moments[k]['covers_truth'] for k in NAMES} }", flush=True)
-    return {"draws": len(draws), "fine_particles": fine.particles.n, "estimate_s": term_s, "rank": term.rank,
-            "rms_relative": term.rms, "leave_one_out_rms_relative": loo, "design": "Sobol, prior ranges",
-            "nuts": {"fit_call_s": fit_s, "ess_bulk": e, "moments": moments}}
+    estimate = float(np.nanmax(tree["sample_stats"]["reduced_error_estimate"].values))
+    print(f"  {label}: {fit_s:.1f} s, ESS { {k: round(v) for k, v in e.items()} }, error estimate max "
+          f"{estimate:.3g} (tolerance {reduced.tolerance:.3g}), covers { {k: moments[k]['covers_truth'] for k in NAMES} }",
+          flush=True)
+    return {"fit_call_s": fit_s, "ess_bulk": e, "moments": moments, "reduced_error_estimate_max": estimate}, tree
 
 
 def run_scene(name: str, args) -> dict:
@@ -196,7 +218,7 @@ def run_scene(name: str, args) -> dict:
     print(f"  correction: {args.correction} full solves in {correction_s:.1f} s, k = {k:.2f}", flush=True)
 
     if name in TERM_DRAWS:
-        out["error_model"] = with_term(name, scene, reduced, data, nuts, noise_scale, truth, args.seed)
+        out["error_model"] = with_term(name, scene, reduced, draws, data, nuts, noise_scale, truth, args.seed)
 
     if scene.particles.n <= args.full_laplace_below:
         t0 = time.perf_counter()
@@ -256,8 +278,11 @@ def targets_of(name: str, result: dict) -> dict:
     if "error_model" in result:
         spent = result["error_model"]["estimate_s"]
         t[f"{name}_error_term_estimate_s"] = (spent, TERM_TARGET_S, spent <= TERM_TARGET_S)
-        covers = all(v["covers_truth"] for v in result["error_model"]["nuts"]["moments"].values())
+        final = result["error_model"].get("enriched", result["error_model"]["nuts"])
+        covers = all(v["covers_truth"] for v in final["moments"].values())
         t[f"{name}_with_term_intervals_cover_truth"] = (covers, True, covers)
+        t[f"{name}_with_term_reduced_error_estimate_max"] = (final["reduced_error_estimate_max"], bound,
+                                                             final["reduced_error_estimate_max"] <= bound)
     if name in TIME_TARGET:
         t[f"{name}_time_to_ess_400_s"] = (rn["time_to_ess_400_s"], TIME_TARGET[name], rn["time_to_ess_400_s"] <= TIME_TARGET[name])
         t[f"{name}_ess_min"] = (rn["ess_min"], ESS_TARGET, rn["ess_min"] >= ESS_TARGET)

@@ -259,6 +259,7 @@ class ReducedScene:
         if over:
             warnings.warn(f"the reduced model's estimated observation error exceeds its tolerance "
                           f"{self.tolerance:.3g} at {over} of {len(picks)} draws (largest {np.nanmax(out):.3g}): "
-                          "rebuild it with draws that cover the posterior, or correct the fit with the "
+                          "rebuild it with draws that cover the posterior (ReducedScene(scene, draws + "
+                          "bp.posterior_draws(tree, 20, seed, inflate=4))), or correct the fit with the "
                           "full model (importance_correction)", stacklevel=2)
         return {"reduced_error_estimate": out.reshape(shape)}
