@@ -251,6 +251,7 @@ def tikhonov(scene, y, init: dict, *, fixed: dict | None = None, mask=None, sigm
     history = []
 
     def scaled(z):
+        monitor.proposed(z)
         J, g = f(z)
         monitor.evaluated(z, J)
         return J / scale, g / scale

@@ -14,11 +14,16 @@ for every problem. On log-parameters z the tests are
 A minimisation is *converged* only if one of them passed. It stops without converging when
 ``maxfun`` evaluations are spent, or when it stalls: ``stall`` evaluations in a row lower the
 best J by no more than ftol relatively (a line search re-evaluating the same point at the
-gradient's round-off floor); :class:`Monitor` raises :class:`Stop` from inside the objective.
+gradient's round-off floor), or when the optimiser proposes a log-parameter that is not
+finite or whose parameter would overflow (|z| > LOG_LIMIT: L-BFGS-B, its curvature pairs
+spoilt by round-off noise near the minimum, can step to inf); :class:`Monitor` raises
+:class:`Stop` from inside the objective, and the best point evaluated is returned.
 """
 from __future__ import annotations
 
 import numpy as np
+
+LOG_LIMIT = 700.0  # exp(700) ~ 1e304: a parameter beyond it overflows (or underflows below -700)
 
 
 class Stop(Exception):
@@ -41,6 +46,13 @@ class Monitor:
         self.ftol, self.maxfun, self.stall = ftol, maxfun, stall
         self.evaluations, self.best_J, self.best_z, self.since_best = 0, np.inf, None, 0
         self.previous = None  # J at the last accepted iteration
+
+    def proposed(self, z) -> None:
+        """Raise Stop before evaluating a point no parameter can take (non-finite or |z| > LOG_LIMIT)."""
+        if not bool(np.all(np.abs(z) <= LOG_LIMIT)):
+            raise Stop(f"the optimiser proposed a log-parameter that is NaN or beyond +-{LOG_LIMIT:g} "
+                       "(a line search lost in round-off near the minimum): the best point is "
+                       "returned; raise gtol or ftol")
 
     def evaluated(self, z, J: float) -> None:
         """Record J(z); raise Stop on a stall or when the budget is spent."""

@@ -43,3 +43,15 @@ def test_a_small_relative_decrease_is_convergence_but_no_decrease_is_not():
     with pytest.raises(Stop, match="relative decrease") as stop:
         m.iteration(1.0 - 5e-7)
     assert stop.value.converged
+
+
+@pytest.mark.parametrize("z", [[0.0, np.inf], [np.nan], [-700.5]])
+def test_a_proposal_no_parameter_can_take_stops_before_it_is_evaluated(z):
+    """L-BFGS-B with round-off-spoilt curvature pairs stepped to z = inf under CHOLMOD (CI):
+    the run must end at its best point, unconverged, not raise from inside the model."""
+    m = Monitor(ftol=1e-3, maxfun=100, stall=3)
+    m.evaluated([0.0], 1.0)
+    with pytest.raises(Stop, match="NaN or beyond") as stop:
+        m.proposed(np.array(z))
+    assert not stop.value.converged and m.best_z.tolist() == [0.0]
+    m.proposed(np.array([699.0, -699.0]))  # representable: no stop
