@@ -43,6 +43,10 @@ class ExactlyDeterminedWarning(UserWarning):
     """As many virtual fields as unknowns: the VFM residual is zero by construction."""
 
 
+class PrescribedMismatchWarning(UserWarning):
+    """Measured displacements on constrained dofs differ from the prescribed values."""
+
+
 def pd_constants(material, K, G):
     """(a_s, a_d) = (kappa - c G / d^2, c G) of the module docstring, from bulk/shear moduli
     (c = ``material.c_d`` and kappa = ``material.kappa`` of the LPS material)."""
@@ -177,10 +181,19 @@ class VirtualWork:
         size = sum(k.abs() for k in Ku)
         self.needed = (size > 1e-10 * size.amax(dim=(1, 2), keepdim=True)).numpy()  # (M, N, dim)
 
-    def data(self, u, observed=None) -> torch.Tensor:
+    def data(self, u, observed=None, sigma: float | None = None) -> torch.Tensor:
         """The measured field ready for the works: checks that every dof a field needs is
-        known (observed, or prescribed by a Dirichlet region) and sets the rest to zero; on
-        prescribed dofs the prescribed value is used, not a (noisy) measurement of it.
+        known (observed, or prescribed by a Dirichlet region) and sets the rest to zero.
+
+        Measured values are kept on the prescribed dofs too; the prescribed value fills only
+        the prescribed dofs that are not measured. Replacing a measurement by the prescribed
+        value would put a jump into the field wherever the data carry a rigid motion (FE and
+        DIC fields do: grips slip, the camera's origin is arbitrary), and K u* reaches the
+        constrained particles, so the jump would bias (K, G). With the measured field kept,
+        W*_int = -(K u*)^T u is blind to rigid motion (K annihilates it). Where a measured
+        value differs from the prescribed one by more than 4 ``sigma`` (the noise sd; without
+        it, 1e-6 of the largest measured displacement) a :class:`PrescribedMismatchWarning`
+        says so.
 
         ``u`` (N, dim) with NaN where not measured; ``observed`` an optional boolean mask (N,)
         or (N, dim) of the measured entries (default: the finite ones).
@@ -208,8 +221,27 @@ class VirtualWork:
                     "strains. Use a field that is zero (or rigid) there, e.g. "
                     "virtual_fields.scaled(field, weight) with a weight vanishing near the "
                     "missing data, or fill the data")
-        filled = np.where(self.fixed_dofs, prescribed, np.where(obs, u, 0.0))  # prescribed: exact
-        return torch.as_tensor(filled)
+        self._check_prescribed(u, obs, prescribed, sigma)
+        return torch.as_tensor(np.where(obs, u, np.where(self.fixed_dofs, prescribed, 0.0)))
+
+    def _check_prescribed(self, u, obs, prescribed, sigma):
+        """Warn where measured constrained dofs disagree with their prescribed values."""
+        both = obs & self.fixed_dofs
+        if not both.any():
+            return
+        if sigma is not None and not (np.isfinite(sigma) and sigma >= 0):
+            raise ValueError(f"sigma must be the noise sd (>= 0), got {sigma}")
+        gap = np.where(both, np.abs(u - prescribed), 0.0)
+        tol = 4 * sigma if sigma is not None else 1e-6 * np.abs(np.where(obs, u, 0.0)).max()
+        if gap.max() > tol:
+            i, c = np.unravel_index(np.argmax(gap), gap.shape)
+            warnings.warn(
+                f"the measured displacement differs from the prescribed one on {int((gap > tol).sum())} "
+                f"constrained dof(s), by up to {gap.max():.3g} at {_describe(self.x, i)}, component {c} "
+                f"(tolerance {tol:.3g}: " + ("4 sigma" if sigma is not None else "1e-6 max |u|; pass sigma=") +
+                "). The measured values are used (the virtual works are blind to rigid motion); if the "
+                "data carry no rigid motion, check where the scene's supports are",
+                PrescribedMismatchWarning, stacklevel=3)
 
     def internal_matrix(self, u) -> torch.Tensor:
         """A (M, 2) with W*_int = A @ (a_s, a_d) for homogeneous moduli (closed form)."""
@@ -242,12 +274,13 @@ class VirtualWork:
                              "include a field that moves the loaded particles")
 
 
-def identify(work: VirtualWork, u, *, observed=None) -> VFMResult:
+def identify(work: VirtualWork, u, *, observed=None, sigma: float | None = None) -> VFMResult:
     """Closed-form PD-VFM: least squares over the virtual fields of W*_int(a) = -W*_ext,
-    i.e. the exact minimiser of Delorme 2018's eq 25 over (a_s, a_d), mapped to (K, G)."""
+    i.e. the exact minimiser of Delorme 2018's eq 25 over (a_s, a_d), mapped to (K, G)
+    (``observed``, ``sigma``: see :meth:`VirtualWork.data`)."""
     start = time.perf_counter()
     work._refuse_no_external_work()
-    A = work.internal_matrix(work.data(u, observed)).numpy()
+    A = work.internal_matrix(work.data(u, observed, sigma)).numpy()
     b = -work.external.numpy()
     scale = np.abs(A).max(axis=0)
     if work.n_fields < 2 or np.linalg.matrix_rank(A / scale, tol=1e-12) < 2:
@@ -265,8 +298,8 @@ def identify(work: VirtualWork, u, *, observed=None) -> VFMResult:
                      time.perf_counter() - start, "closed_form")
 
 
-def optimise(work: VirtualWork, u, init: dict, *, observed=None, bounds: dict | None = None,
-             tol: float = 1e-15, max_evaluations: int = 200) -> VFMResult:
+def optimise(work: VirtualWork, u, init: dict, *, observed=None, sigma: float | None = None,
+             bounds: dict | None = None, tol: float = 1e-15, max_evaluations: int = 200) -> VFMResult:
     """Minimise eq 25 over the params named in ``init`` (positive, on a log scale), e.g.
     K, G, and possibly delta or influence parameters, by Gauss-Newton (scipy least_squares,
     trust region) with Jacobians by autograd; the others come from ``work.fixed``."""
@@ -278,7 +311,7 @@ def optimise(work: VirtualWork, u, init: dict, *, observed=None, bounds: dict | 
     z0 = np.log([float(init[k]) for k in names])
     lo = [np.log(bounds[k][0]) if bounds and k in bounds else -np.inf for k in names]
     hi = [np.log(bounds[k][1]) if bounds and k in bounds else np.inf for k in names]
-    ud = work.data(u, observed)
+    ud = work.data(u, observed, sigma)
     norm = float(torch.sqrt((work.external**2).sum()))
     evaluations = 0
     cache = {}

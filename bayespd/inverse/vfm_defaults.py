@@ -92,10 +92,11 @@ def with_rule(scene, rule: str, delta_max: float):
     return bp.Scene(material, scene.dirichlet, scene.loads, scene.observation)
 
 
-def estimate(scene, u, *, observed=None, fields=None, ms=MS, rules=RULES) -> VFMResult:
+def estimate(scene, u, *, observed=None, sigma: float | None = None, fields=None, ms=MS,
+             rules=RULES) -> VFMResult:
     """K, G of the LPS ``scene`` from the measured field ``u`` (N, dim; NaN where not
     measured) by the closed-form PD-VFM at the (m, rule) of least residual (module
-    docstring). ``fields`` default to :func:`interior_fields` with clearance 2 max(ms) h + h.
+    docstring); ``sigma``: the noise sd (``vfm.VirtualWork.data``). ``fields`` default to :func:`interior_fields` with clearance 2 max(ms) h + h.
     The result's ``extra`` holds the chosen ``m``, ``rule``, ``delta`` and every candidate's
     ``phi`` and estimates."""
     ms = tuple(count("ms entry", m, 1, "m = delta / h is at least 1") for m in ms)
@@ -111,7 +112,7 @@ def estimate(scene, u, *, observed=None, fields=None, ms=MS, rules=RULES) -> VFM
     for rule in rules:
         sc = with_rule(scene, rule, max(ms) * h)
         for m in ms:
-            res = identify(VirtualWork(sc, fields, {"delta": m * h}), u, observed=observed)
+            res = identify(VirtualWork(sc, fields, {"delta": m * h}), u, observed=observed, sigma=sigma)
             candidates.append({"m": m, "rule": rule, "phi": res.phi, "K": res.params["K"],
                                "G": res.params["G"], "result": res})
     best = min(candidates, key=lambda c: c["phi"])

@@ -87,15 +87,26 @@ class FESolution:
         return values.reshape(self.dim, len(points)).T
 
 
-def probe_matrix(basis, axes: list[np.ndarray], points: np.ndarray):
+def probe_matrix(basis, axes: list[np.ndarray] | None, points: np.ndarray):
     """Sparse matrix evaluating a vector FE field at ``points`` (rows: component-major).
 
     Same construction as skfem's ``CellBasis.probes``, but the cell of each point comes
-    from the tensor-product axes in O(log n) (skfem's generic finder is quadratic in memory).
+    from the tensor-product ``axes`` in O(log n) (skfem's generic finder is quadratic in
+    memory), or, on an unstructured mesh (``axes=None``), from the nearest cell centres.
     """
     from scipy.sparse import coo_matrix
 
-    mesh = basis.mesh
+    cells = _cells_on_axes(basis.mesh, axes, points) if axes is not None else _cells_near(basis, points)
+    local = basis.mapping.invF(points.T[:, :, None], tind=cells)
+    phis = np.array([basis.elem.gbasis(basis.mapping, local, k, tind=cells)[0]
+                     for k in range(basis.Nbfun)]).flatten()
+    comp = points.shape[1]
+    rows = np.tile(np.arange(comp * len(points)), basis.Nbfun)
+    cols = basis.element_dofs[:, np.tile(cells, comp)].flatten()
+    return coo_matrix((phis, (rows, cols)), shape=(comp * len(points), basis.N)).tocsr()
+
+
+def _cells_on_axes(mesh, axes, points):
     if np.any(points < [a[0] for a in axes]) or np.any(points > [a[-1] for a in axes]):
         raise ValueError("a probe point lies outside the FE box")
     corner = mesh.p[:, mesh.t].min(axis=1)  # (dim, n_cells): each cell's lowest corner
@@ -105,14 +116,32 @@ def probe_matrix(basis, axes: list[np.ndarray], points: np.ndarray):
     lookup[tuple(ids)] = np.arange(mesh.t.shape[1])
     idx = [np.clip(np.searchsorted(a, x, side="right") - 1, 0, n - 1)
            for a, x, n in zip(axes, points.T, shape)]
-    cells = lookup[tuple(idx)]
-    local = basis.mapping.invF(points.T[:, :, None], tind=cells)
-    phis = np.array([basis.elem.gbasis(basis.mapping, local, k, tind=cells)[0]
-                     for k in range(basis.Nbfun)]).flatten()
-    comp = points.shape[1]
-    rows = np.tile(np.arange(comp * len(points)), basis.Nbfun)
-    cols = basis.element_dofs[:, np.tile(cells, comp)].flatten()
-    return coo_matrix((phis, (rows, cols)), shape=(comp * len(points), basis.N)).tocsr()
+    return lookup[tuple(idx)]
+
+
+def _cells_near(basis, points, candidates: int = 8):
+    """The cell of each point on a 2D mesh of straight-edged convex quads: the first of its
+    nearest cell centres whose counter-clockwise edges all have the point on their left."""
+    from scipy.spatial import cKDTree
+
+    mesh = basis.mesh
+    if mesh.dim() != 2 or mesh.t.shape[0] != 4:
+        raise ValueError("probes off a tensor-product mesh are implemented for 2D quad meshes only")
+    corners = mesh.p[:, mesh.t]  # (2, 4, n_cells), counter-clockwise
+    near = cKDTree(corners.mean(axis=1).T).query(points, k=min(candidates, mesh.t.shape[1]))[1]
+    near = near.reshape(len(points), -1)
+    cells = np.full(len(points), -1)
+    for k in range(near.shape[1]):
+        c = corners[:, :, near[:, k]]
+        edge, rel = np.roll(c, -1, axis=1) - c, points.T[:, None, :] - c
+        cross = edge[0] * rel[1] - edge[1] * rel[0]  # (4, n)
+        tol = 1e-9 * (edge**2).sum(axis=0)
+        inside = (cells < 0) & np.all(cross >= -tol, axis=0)
+        cells[inside] = near[inside, k]
+    if np.any(cells < 0):
+        raise ValueError(f"{int((cells < 0).sum())} probe point(s) lie outside the FE mesh "
+                         f"(e.g. {points[cells < 0][0].tolist()})")
+    return cells
 
 
 def graded_axis(length: float, h: float, at=(), levels: int = 0) -> np.ndarray:
@@ -187,26 +216,41 @@ def solve_box(extent, h: float, E: float, nu: float, supports: list[Support],
     ``chunk`` elements at a time to bound the memory of the quadrature data.
     """
     skfem = require_skfem()
-    from skfem.helpers import sym_grad
-
     start = time.perf_counter()
     dim = len(extent)
     if dim not in (2, 3) or order not in (1, 2):
         raise ValueError("solve_box handles 2D/3D boxes with order 1 or 2")
+    for r in [s.region for s in supports] + [ld.region for ld in loads]:
+        _check_aligned(r, h)
+    faces = [{v for s in supports for v in (s.region.lo[a], s.region.hi[a])} for a in range(dim)]
+    axes = [graded_axis(e, h, sorted(f), grading) for e, f in zip(extent, faces)]
+    mesh = skfem.MeshQuad1.init_tensor(*axes) if dim == 2 else skfem.MeshHex1.init_tensor(*axes)
+    return solve_mesh(mesh, E, nu, supports, loads, order=order, plane=plane, thickness=thickness,
+                      stiffness=stiffness, chunk=chunk, axes=axes, h=h, start=start)
+
+
+def solve_mesh(mesh, E: float, nu: float, supports: list[Support], loads: list[BodyLoad], *,
+               order: int = 2, plane: str | None = "stress", thickness: float = 1.0, stiffness=None,
+               chunk: int = 2000, axes=None, h: float | None = None, start: float | None = None) -> FESolution:
+    """Linear elasticity with Q``order`` elements on a quad (2D) or hex (3D) ``mesh`` (see
+    :func:`solve_box` for the supports, loads and ``stiffness``; the support and load regions
+    must be unions of cells). ``axes``: the mesh's tensor-product axes when it has them (fast
+    probes); ``h``: the nominal mesh size recorded in the solution."""
+    skfem = require_skfem()
+    from skfem.helpers import sym_grad
+
+    start = time.perf_counter() if start is None else start
+    dim = mesh.dim()
+    if order not in (1, 2) or not isinstance(mesh, (skfem.MeshQuad1, skfem.MeshHex1)):
+        raise ValueError("solve_mesh takes a MeshQuad1 or MeshHex1 and order 1 or 2")
     C = isotropic_stiffness(E, nu, dim, plane) if stiffness is None else np.asarray(stiffness, float)
     if C.shape != (len(VOIGT[dim]),) * 2 or not np.allclose(C, C.T):
         raise ValueError(f"stiffness must be a symmetric {len(VOIGT[dim])}x{len(VOIGT[dim])} Voigt matrix")
     if dim == 3:
         thickness = 1.0
-    for r in [s.region for s in supports] + [ld.region for ld in loads]:
-        _check_aligned(r, h)
-    faces = [{v for s in supports for v in (s.region.lo[a], s.region.hi[a])} for a in range(dim)]
-    axes = [graded_axis(e, h, sorted(f), grading) for e, f in zip(extent, faces)]
     if dim == 2:
-        mesh = skfem.MeshQuad1.init_tensor(*axes)
         elem = skfem.ElementQuad1() if order == 1 else skfem.ElementQuad2()
     else:
-        mesh = skfem.MeshHex1.init_tensor(*axes)
         elem = skfem.ElementHex1() if order == 1 else skfem.ElementHex2()
     elem = skfem.ElementVector(elem)
     basis = skfem.Basis(mesh, elem, intorder=1)  # dofs, dof locations and probes only
@@ -243,7 +287,7 @@ def solve_box(extent, h: float, E: float, nu: float, supports: list[Support],
         for c, v in enumerate(s.value):
             if v is not None:
                 if v != 0:
-                    raise ValueError("solve_box fixes components to zero only")
+                    raise ValueError("solve_mesh fixes components to zero only")
                 idx = comps[c]
                 fixed.append(idx[s.region.contains(basis.doflocs[:, idx].T)])
     D = np.unique(np.concatenate(fixed)) if fixed else np.array([], dtype=np.int64)

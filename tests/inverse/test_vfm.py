@@ -1,13 +1,15 @@
 """PD Virtual Fields Method (Delorme 2018): patch tests on PD-generated fields (same model ->
 exact moduli), closed form vs optimiser, linearity in the PD constants, bad input."""
+import warnings
+
 import numpy as np
 import pytest
 import torch
 
 import bayespd as bp
 from bayespd.inverse import virtual_fields as vf
-from bayespd.inverse.vfm import (VirtualWork, identify, moduli_from_constants, optimise,
-                                 pd_constants)
+from bayespd.inverse.vfm import (PrescribedMismatchWarning, VirtualWork, identify, moduli_from_constants,
+                                 optimise, pd_constants)
 from bayespd.reference import three_point_bending as tpb
 from tests.conftest import plate_scene
 
@@ -54,6 +56,38 @@ def test_closed_form_exact_plane_strain():
               lambda x: np.stack([np.maximum(x[:, 0] - 2.5, 0) ** 2 * x[:, 1], 0 * x[:, 0]], 1)]
     res = identify(VirtualWork(scene, fields, {"delta": 2.5}), u)
     assert rel(res.params["K"], truth["K"]) < 1e-10 and rel(res.params["G"], truth["G"]) < 1e-10
+
+
+def test_measured_values_on_supports_are_kept_so_rigid_motion_changes_nothing(beam):
+    """K annihilates rigid motion, so W*_int = -(K u*)^T u is the same for u and u + r when
+    the measured field is used everywhere. Overwriting the supports with their prescribed
+    zeros (the former behaviour) put a jump of size |r| there and biased K and G."""
+    scene, truth, u = beam
+    x = torch.as_tensor(scene.particles.x)
+    scale = float(u.abs().max())
+    theta = 0.3 * scale / tpb.LENGTH  # a small rotation about the beam's corner
+    rigid = torch.stack([0.2 * scale - theta * x[:, 1], -0.5 * scale + theta * x[:, 0]], 1)
+    work = VirtualWork(scene, beam_fields(), {"delta": DELTA})
+    with pytest.warns(PrescribedMismatchWarning, match="differs from the prescribed one"):
+        res = identify(work, u + rigid)
+    assert rel(res.params["K"], truth["K"]) < 1e-9 and rel(res.params["G"], truth["G"]) < 1e-9
+    # unmeasured constrained dofs are filled with the prescribed values: still exact
+    fixed = ~np.asarray(scene.constraints.free_mask).reshape(u.shape)
+    res = identify(work, u, observed=~fixed)
+    assert rel(res.params["K"], truth["K"]) < 1e-10 and rel(res.params["G"], truth["G"]) < 1e-10
+
+
+def test_mismatch_within_the_noise_is_not_flagged(beam):
+    scene, truth, u = beam
+    work = VirtualWork(scene, beam_fields(), {"delta": DELTA})
+    noisy = u + 1e-4 * torch.as_tensor(np.random.default_rng(1).standard_normal(u.shape))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", PrescribedMismatchWarning)
+        work.data(noisy, sigma=1e-4)  # 4 sigma covers the support particles' noise here
+    with pytest.warns(PrescribedMismatchWarning, match="4 sigma"):
+        work.data(noisy + 1e-3, sigma=1e-4)
+    with pytest.raises(ValueError, match="sigma must be the noise sd"):
+        work.data(noisy, sigma=-1.0)
 
 
 def test_optimiser_agrees_with_closed_form_on_noisy_data(beam):
@@ -185,9 +219,10 @@ def test_noise_optimal_fields_give_the_least_squares_estimate(beam):
     scene, truth, u = beam
     y = u + 2e-3 * float(u.abs().max()) * torch.randn(u.shape, generator=torch.Generator().manual_seed(4), dtype=u.dtype)
     est = {"K": 2500.0, "G": 2000.0}
+    free_dofs = np.asarray(scene.constraints.free_mask).reshape(u.shape)  # the supports are known exactly
     for _ in range(6):  # a fixed-point iteration: ~3 digits per step here
         work = VirtualWork(scene, noise_optimal_fields(scene, {**est, "delta": DELTA}), {"delta": DELTA})
-        est = identify(work, y).params
+        est = identify(work, y, observed=free_dofs).params
     free = scene.constraints.free(y)
 
     def misfit(z):
