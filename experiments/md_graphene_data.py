@@ -83,7 +83,8 @@ def main():
     write_metrics(NAME + ("_quick" if args.quick else ""), {
         "wall_time_s": time.perf_counter() - start, "steps_wall_time_s": steps, "coarse_graining": coarse,
         "settings": {"size_A": size, "modes": modes, "frames": frames, "strain_target": strain, "v0_A_per_ps": v0,
-                     "b0_eV_per_A": b0, "tr_ps": tr, "weno_resolution_A": RESOLUTION, "weno_band_A": 0.75 * md.A0, "potential": md._potential(), "frame_dt_ps": 99 * 0.0005},
+                     "b0_eV_per_A": b0, "tr_ps": tr, "weno_resolution_A": RESOLUTION, "weno_band_A": 0.75 * md.A0,
+                     "potential": md._potential(), "frame_dt_ps": 99 * 0.0005},
         "atoms": {"periodic": len(x), "slit": len(slit)}, "n_broken_bonds": broken, "targets": targets,
         "records": {k: {"wall_time_s": float(r.attrs.get("wall_time_s", np.nan)), "frames": r.sizes["frame"]}
                     for k, r in records.items()}})

@@ -22,7 +22,9 @@ to a crack sees both faces at the same d and alpha stays near 1 (measured: media
 straight jump). ``band`` keeps only the particles within ``band`` of the segment's line; about
 0.75 particle spacings with ``min_side=2`` cut the error next to a jump about 6x below the plain
 average's (tests/learn/test_coarse_grain.py), the paper's whole-disk rule only 5 %. ``resolution`` (A) is added to both errors as n r^2: a field whose
-variation along the segment is below it counts as smooth (alpha -> 1), and 0/0 cannot occur.
+variation along the segment is below it counts as smooth (alpha -> 1), and 0/0 cannot occur. MD
+fields carry lattice-scale structure (sublattice shifts, waves): there about 0.03 A is needed
+(measured in experiments/md_graphene_data.py); the default suits smooth synthetic fields.
 
 Positions may be periodic (``box``): every particle-node vector is then the minimum image.
 """
