@@ -23,7 +23,10 @@ paths everywhere (the tests and benchmarks compare the two).
 """
 from __future__ import annotations
 
+import itertools
 import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import scipy.sparse as sp
@@ -59,13 +62,88 @@ def stretch(u: torch.Tensor, ends: tuple, xi: torch.Tensor, length: torch.Tensor
 
 def pmb_force(u: torch.Tensor, ends: tuple, xi: torch.Tensor, length: torch.Tensor, k: torch.Tensor,
               intact: torch.Tensor | None) -> torch.Tensor:
-    """f (N, dim) of PMB bonds of stiffness k (n_bonds,) at the intact fractions (None: all 1)."""
+    """f (N, dim) of PMB bonds of stiffness k (n_bonds,) at the intact fractions (None: all 1),
+    over ``torch.get_num_threads()`` threads when there are enough bonds (``shared``)."""
     f = np.zeros(tuple(u.shape), dtype=u.detach().numpy().dtype)
     mu = np.ones(1, dtype=f.dtype) if intact is None else intact.detach().numpy()
-    k = np.broadcast_to(k.detach().numpy(), length.shape)
-    _pmb_force(_BOND[u.shape[1]], u.detach().numpy(), *ends, xi.numpy(), length.numpy(), k, mu,
-               intact is not None, f)
+    args = (_BOND[u.shape[1]], u.detach().numpy(), *ends, xi.numpy(), length.numpy(),
+            np.broadcast_to(k.detach().numpy(), length.shape), mu, intact is not None)
+    threads = torch.get_num_threads()
+    parts = chunks(ends, SHARES_PER_THREAD * threads if threads > 1 else 1)
+    if len(parts) == 1:
+        _pmb_force(*args, 0, len(length), 0, 0, f, f)
+    else:
+        shared(_pmb_force, args, parts, f, threads)
     return torch.from_numpy(f)
+
+
+MIN_CHUNK = 1 << 15  # bonds per share below which one thread does the whole loop
+SHARES_PER_THREAD = 8
+
+
+def shared(kernel, args: tuple, parts: list, f: np.ndarray, threads: int):
+    """Runs ``kernel(*args, *part, f, band)`` for every share of ``chunks`` on the calling
+    thread and ``threads - 1`` pool threads, each claiming the next unclaimed share, then adds
+    the bands to f. The caller waits only for shares another thread has claimed: on a busy
+    machine a pool thread that the scheduler has not run yet claims nothing and costs nothing,
+    where a fixed split waits a time slice for it."""
+    bands = [np.zeros((own - lo,) + f.shape[1:], dtype=f.dtype) for _, _, lo, own in parts]
+    claim, done, failed = itertools.count(), [threading.Event() for _ in parts], []
+
+    def work():
+        while (t := next(claim)) < len(parts):
+            try:
+                kernel(*args, *parts[t], f, bands[t])
+            except BaseException as error:  # re-raised on the calling thread
+                failed.append(error)
+            finally:
+                done[t].set()
+
+    for _ in range(threads - 1):
+        _pool(threads - 1).submit(work)
+    work()
+    for event in done:
+        event.wait()
+    if failed:
+        raise failed[0]
+    for (_, _, lo, own), band in zip(parts, bands):
+        f[lo:own] += band
+
+
+def chunks(ends: tuple, count: int) -> list[tuple[int, int, int, int]]:
+    """(first bond, end bond, lo, own) of ``count`` shares of the bonds (sorted by their
+    first end i, i < j, as ``find_bonds`` gives them), split where i changes, each >= MIN_CHUNK
+    bonds. Its particles lie in [lo, ...): it writes p >= own (those no earlier share touches)
+    straight to f, and p in [lo, own) to a band of its own, added to f afterwards. One share
+    when the bonds are too few or not so sorted."""
+    i, j = ends
+    n, count = len(i), max(1, min(count, len(i) // MIN_CHUNK))
+    key = (id(i), id(j), count)
+    if key not in _CHUNKS:
+        cuts = sorted({0, n} | {int(np.searchsorted(i, i[n * t // count])) for t in range(1, count)})
+        parts, reach = [], 0
+        for b0, b1 in zip(cuts[:-1], cuts[1:]):
+            parts.append((b0, b1, int(i[b0]), max(reach, int(i[b0]))))
+            reach = max(reach, int(j[b0:b1].max()) + 1)
+        sorted_ = count > 1 and bool(np.all(np.diff(i) >= 0)) and bool(np.all(j > i))
+        if len(_CHUNKS) > 64:
+            _CHUNKS.clear()
+        _CHUNKS[key] = (ends, parts if sorted_ else [(0, n, 0, 0)])
+    return _CHUNKS[key][1]
+
+
+_CHUNKS: dict = {}  # (ids of i and j, share count) -> ((i, j), kept alive while cached; the shares)
+_POOLS: dict = {}
+
+
+def _pool(workers: int) -> ThreadPoolExecutor:
+    """The threads that run shares of ``pmb_force`` beside the caller (its kernel releases the
+    GIL), per process: an executor's threads do not survive a fork. Between calls they wait
+    on a lock, where an OpenMP pool spins (on a shared machine, in another process's time)."""
+    key = (os.getpid(), workers)
+    if key not in _POOLS:
+        _POOLS[key] = ThreadPoolExecutor(workers, thread_name_prefix="bond_loops")
+    return _POOLS[key]
 
 
 def tangent_change(u_before: np.ndarray, u_after: np.ndarray, ends: tuple, xi: np.ndarray, length: np.ndarray,
@@ -117,8 +195,9 @@ def _compiled(fn):
     return fn if numba is None else numba.njit(nogil=True, inline="always")(fn)
 
 
-def _cached(fn):
-    """Compiled on first use and cached on disk (a kernel that takes no compiled function)."""
+def cached_kernel(fn):
+    """Compiled on first use and cached on disk (a kernel that takes no compiled function;
+    also for the loops of ``solvers.verlet_loops``)."""
     return fn if numba is None else numba.njit(nogil=True, cache=True)(fn)
 
 
@@ -154,8 +233,8 @@ def _stretch(bond, u, i, j, xi, length, s):  # pragma: no cover (compiled)
 
 
 @_compiled
-def _pmb_force(bond, u, i, j, xi, length, k, mu, damaged, f):  # pragma: no cover (compiled)
-    for b in range(i.shape[0]):
+def _pmb_force(bond, u, i, j, xi, length, k, mu, damaged, b0, b1, lo, own, f, band):  # pragma: no cover (compiled)
+    for b in range(b0, b1):
         kb = k[b] * mu[b] if damaged else k[b]
         if kb == 0.0:
             continue  # a broken bond: its force is exactly zero
@@ -164,11 +243,17 @@ def _pmb_force(bond, u, i, j, xi, length, k, mu, damaged, f):  # pragma: no cove
         t = kb * e / r
         for a in range(len(y)):
             fb = y[a] * t
-            f[p, a] += fb
-            f[q, a] -= fb
+            if p >= own:
+                f[p, a] += fb
+            else:
+                band[p - lo, a] += fb
+            if q >= own:
+                f[q, a] -= fb
+            else:
+                band[q - lo, a] -= fb
 
 
-@_cached
+@cached_kernel
 def _components(i, j, keep, labels):  # pragma: no cover (compiled)
     """Union-find with path halving, each root the lowest vertex of its piece; then the
     labels in vertex order (a root comes before the rest of its piece). The root of the
@@ -229,7 +314,7 @@ def _tangent_change(bond, u0, u1, i, j, xi, length, k, bonds, mu0, mu1, local, r
     return n
 
 
-@_cached
+@cached_kernel
 def _tally(intact, operated, broken, now):  # pragma: no cover (compiled)
     moved, count, differs = 0.0, 0, False
     for b in range(intact.shape[0]):
@@ -240,7 +325,7 @@ def _tally(intact, operated, broken, now):  # pragma: no cover (compiled)
     return moved, count, differs
 
 
-@_cached
+@cached_kernel
 def _damage_sums(i, j, w, mu, V, out):  # pragma: no cover (compiled)
     for ends, others in ((i, j), (j, i)):
         for b in range(mu.shape[0]):

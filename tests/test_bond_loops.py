@@ -194,3 +194,61 @@ def test_components_number_the_pieces_as_scipy_does(monkeypatch, compiled):
     count, labels = bond_loops.components(p.n, bonds.i, bonds.j, keep)
     assert count == 2 and np.array_equal(labels, scipy_components(p.n, bonds.i, bonds.j, keep)[1])
     assert len(calls) == (301 if compiled and bond_loops.numba is not None else 0)
+
+
+@pytest.fixture
+def threads():
+    """Sets torch's thread count for a test, restoring it afterwards."""
+    before = torch.get_num_threads()
+    yield torch.set_num_threads
+    torch.set_num_threads(before)
+
+
+@pytest.mark.parametrize("per_thread", [1, 3])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("dim", [2, 3])
+def test_pmb_force_on_threads_is_the_one_thread_sum(dim, dtype, per_thread, threads, monkeypatch):
+    """Over 3 threads (1 or 3 shares each, claimed in turn) each share sums its bonds in order: a particle outside every share's
+    band gets the one-thread force bit for bit; one in a band (touched by two shares) gets
+    the same terms in another association, to a few ulp of the largest force; float32 agrees
+    with the float64 force to 64 float32 ulp. The shares cover the bonds in order and write
+    disjoint particles straight to f (a share's particles below its ``own`` are in its band)."""
+    p = bp.grid_2d(30.0, 20.0, 1.0) if dim == 2 else bp.grid_3d(6.0, 16.0, 6.0, 1.0)
+    bonds = bp.find_bonds(p, 2.0)
+    rng = np.random.default_rng(dim)
+    u = torch.as_tensor(rng.normal(scale=0.05, size=(p.n, dim)), dtype=dtype)
+    k, mu = torch.as_tensor(rng.uniform(1.0, 2.0, bonds.n), dtype=dtype), torch.as_tensor(rng.uniform(0.0, 1.0, bonds.n), dtype=dtype)
+    ends, xi, length = geometry(bonds, dtype)
+    monkeypatch.setattr(bond_loops, "MIN_CHUNK", bonds.n // 12)
+    monkeypatch.setattr(bond_loops, "SHARES_PER_THREAD", per_thread)
+    threads(1)
+    serial = bond_loops.pmb_force(u, ends, xi, length, k, mu)
+    threads(3)
+    shared = bond_loops.pmb_force(u, ends, xi, length, k, mu)
+    parts = bond_loops.chunks(ends, 3 * per_thread)
+    assert len(parts) == 3 * per_thread and parts[0][0] == 0 and parts[-1][1] == bonds.n
+    banded = np.zeros(p.n, dtype=bool)
+    for t, (b0, b1, lo, own) in enumerate(parts):
+        assert t == 0 or b0 == parts[t - 1][1]
+        touched = np.union1d(bonds.i[b0:b1], bonds.j[b0:b1])
+        assert touched.min() == lo and own >= lo
+        later = parts[t + 1][3] if t + 1 < len(parts) else p.n
+        assert touched.max() < later  # the next share writes only beyond these straight to f
+        banded[lo:own] = True
+    assert 0 < banded.sum() < p.n * (0.5 if per_thread == 1 else 1.0)
+    eps = torch.finfo(dtype).eps
+    assert torch.equal(shared[~banded], serial[~banded])
+    assert float((shared - serial).abs().max()) <= 8 * eps * float(serial.abs().max())
+    if dtype == torch.float32:
+        exact = bond_loops.pmb_force(u.double(), (ends[0], ends[1]), xi.double(), length.double(), k.double(), mu.double())
+        assert float((shared - exact).abs().max()) <= 64 * eps * float(exact.abs().max())
+
+
+def test_unsorted_bonds_take_one_share(monkeypatch):
+    """Bonds not sorted by their first end (or with i > j) are not split: one share."""
+    p, bonds = plate()
+    monkeypatch.setattr(bond_loops, "MIN_CHUNK", 8)
+    ends, _, _ = geometry(bonds)
+    assert len(bond_loops.chunks(ends, 2)) == 2
+    assert bond_loops.chunks((ends[0][::-1].copy(), ends[1][::-1].copy()), 2) == [(0, bonds.n, 0, 0)]
+    assert bond_loops.chunks((ends[1].copy(), ends[0].copy()), 2) == [(0, bonds.n, 0, 0)]
