@@ -64,80 +64,80 @@ def pmb_force(u: torch.Tensor, ends: tuple, xi: torch.Tensor, length: torch.Tens
               intact: torch.Tensor | None) -> torch.Tensor:
     """f (N, dim) of PMB bonds of stiffness k (n_bonds,) at the intact fractions (None: all 1),
     over ``torch.get_num_threads()`` threads when there are enough bonds (``shared``)."""
-    f = np.zeros(tuple(u.shape), dtype=u.detach().numpy().dtype)
-    mu = np.ones(1, dtype=f.dtype) if intact is None else intact.detach().numpy()
-    args = (_BOND[u.shape[1]], u.detach().numpy(), *ends, xi.numpy(), length.numpy(),
+    un = u.detach().numpy()
+    mu = np.ones(1, dtype=un.dtype) if intact is None else intact.detach().numpy()
+    args = (_BOND[u.shape[1]], un, *ends, xi.numpy(), length.numpy(),
             np.broadcast_to(k.detach().numpy(), length.shape), mu, intact is not None)
     threads = torch.get_num_threads()
-    parts = chunks(ends, SHARES_PER_THREAD * threads if threads > 1 else 1)
-    if len(parts) == 1:
-        _pmb_force(*args, 0, len(length), 0, 0, f, f)
-    else:
-        shared(_pmb_force, args, parts, f, threads)
+    parts = shares(ends, SHARES_PER_THREAD * threads if threads > 1 else 1)
+    if len(parts) > 1:
+        return torch.from_numpy(shared(_pmb_force, args, parts, un.shape, un.dtype, threads))
+    f = np.zeros(un.shape, dtype=un.dtype)
+    _pmb_force(*args, 0, len(length), 0, f)
     return torch.from_numpy(f)
 
 
-MIN_CHUNK = 1 << 15  # bonds per share below which one thread does the whole loop
+MIN_SHARE = 1 << 15  # bonds per share below which one thread does the whole loop
 SHARES_PER_THREAD = 8
 
 
-def shared(kernel, args: tuple, parts: list, f: np.ndarray, threads: int):
-    """Runs ``kernel(*args, *part, f, band)`` for every share of ``chunks`` on the calling
-    thread and ``threads - 1`` pool threads, each claiming the next unclaimed share, then adds
-    the bands to f. The caller waits only for shares another thread has claimed: on a busy
-    machine a pool thread that the scheduler has not run yet claims nothing and costs nothing,
-    where a fixed split waits a time slice for it."""
-    bands = [np.zeros((own - lo,) + f.shape[1:], dtype=f.dtype) for _, _, lo, own in parts]
-    claim, done, failed = itertools.count(), [threading.Event() for _ in parts], []
+def shared(kernel, args: tuple, parts: list, shape: tuple, dtype, threads: int) -> np.ndarray:
+    """The sum over the ``shares`` (b0, b1, lo, hi) of ``kernel(*args, b0, b1, lo, out)``, each
+    writing the rows [lo, hi) of f to an ``out`` of its own, added up in share order (the
+    same bits whichever thread ran a share). The calling thread and ``threads - 1`` pool
+    threads claim shares in turn; then the caller does again itself any share that no thread
+    has finished: on a busy machine a pool thread that the scheduler has set aside delays
+    nothing (where waiting for it costs a time slice), and the caller's extra work is at most
+    the shares that were under way elsewhere."""
+    results, lock, claim = [None] * len(parts), threading.Lock(), itertools.count()
+
+    def attempt(t):
+        b0, b1, lo, hi = parts[t]
+        out = np.zeros((hi - lo,) + tuple(shape[1:]), dtype=dtype)
+        kernel(*args, b0, b1, lo, out)
+        with lock:
+            if results[t] is None:
+                results[t] = out
 
     def work():
         while (t := next(claim)) < len(parts):
-            try:
-                kernel(*args, *parts[t], f, bands[t])
-            except BaseException as error:  # re-raised on the calling thread
-                failed.append(error)
-            finally:
-                done[t].set()
+            attempt(t)
 
     for _ in range(threads - 1):
         _pool(threads - 1).submit(work)
     work()
-    for event in done:
-        event.wait()
-    if failed:
-        raise failed[0]
-    for (_, _, lo, own), band in zip(parts, bands):
-        f[lo:own] += band
+    for t in range(len(parts)):
+        if results[t] is None:
+            attempt(t)
+    f = np.zeros(shape, dtype=dtype)
+    for (_, _, lo, hi), out in zip(parts, results):
+        f[lo:hi] += out
+    return f
 
 
-def chunks(ends: tuple, count: int) -> list[tuple[int, int, int, int]]:
-    """(first bond, end bond, lo, own) of ``count`` shares of the bonds (sorted by their
-    first end i, i < j, as ``find_bonds`` gives them), split where i changes, each >= MIN_CHUNK
-    bonds. Its particles lie in [lo, ...): it writes p >= own (those no earlier share touches)
-    straight to f, and p in [lo, own) to a band of its own, added to f afterwards. One share
-    when the bonds are too few or not so sorted."""
+def shares(ends: tuple, count: int) -> list[tuple[int, int, int, int]]:
+    """(first bond, end bond, lo, hi): ``count`` runs of consecutive bonds (at least
+    MIN_SHARE each, else fewer) and the range [lo, hi) of the particles each touches; short
+    ranges when the bonds are sorted by particle, as ``find_bonds`` sorts them."""
     i, j = ends
-    n, count = len(i), max(1, min(count, len(i) // MIN_CHUNK))
+    n, count = len(i), max(1, min(count, len(i) // MIN_SHARE))
     key = (id(i), id(j), count)
-    if key not in _CHUNKS:
-        cuts = sorted({0, n} | {int(np.searchsorted(i, i[n * t // count])) for t in range(1, count)})
-        parts, reach = [], 0
-        for b0, b1 in zip(cuts[:-1], cuts[1:]):
-            parts.append((b0, b1, int(i[b0]), max(reach, int(i[b0]))))
-            reach = max(reach, int(j[b0:b1].max()) + 1)
-        sorted_ = count > 1 and bool(np.all(np.diff(i) >= 0)) and bool(np.all(j > i))
-        if len(_CHUNKS) > 64:
-            _CHUNKS.clear()
-        _CHUNKS[key] = (ends, parts if sorted_ else [(0, n, 0, 0)])
-    return _CHUNKS[key][1]
+    if key not in _SHARES:
+        cuts = [n * t // count for t in range(count + 1)]
+        parts = [(b0, b1, int(min(i[b0:b1].min(), j[b0:b1].min())), int(max(i[b0:b1].max(), j[b0:b1].max())) + 1)
+                 for b0, b1 in zip(cuts[:-1], cuts[1:])]
+        if len(_SHARES) > 64:
+            _SHARES.clear()
+        _SHARES[key] = (ends, parts)
+    return _SHARES[key][1]
 
 
-_CHUNKS: dict = {}  # (ids of i and j, share count) -> ((i, j), kept alive while cached; the shares)
+_SHARES: dict = {}  # (ids of i and j, count) -> ((i, j), kept alive while cached; the shares)
 _POOLS: dict = {}
 
 
 def _pool(workers: int) -> ThreadPoolExecutor:
-    """The threads that run shares of ``pmb_force`` beside the caller (its kernel releases the
+    """The threads that run ``shared``'s shares beside the caller (the kernels release the
     GIL), per process: an executor's threads do not survive a fork. Between calls they wait
     on a lock, where an OpenMP pool spins (on a shared machine, in another process's time)."""
     key = (os.getpid(), workers)
@@ -233,7 +233,7 @@ def _stretch(bond, u, i, j, xi, length, s):  # pragma: no cover (compiled)
 
 
 @_compiled
-def _pmb_force(bond, u, i, j, xi, length, k, mu, damaged, b0, b1, lo, own, f, band):  # pragma: no cover (compiled)
+def _pmb_force(bond, u, i, j, xi, length, k, mu, damaged, b0, b1, lo, f):  # pragma: no cover (compiled)
     for b in range(b0, b1):
         kb = k[b] * mu[b] if damaged else k[b]
         if kb == 0.0:
@@ -243,14 +243,8 @@ def _pmb_force(bond, u, i, j, xi, length, k, mu, damaged, b0, b1, lo, own, f, ba
         t = kb * e / r
         for a in range(len(y)):
             fb = y[a] * t
-            if p >= own:
-                f[p, a] += fb
-            else:
-                band[p - lo, a] += fb
-            if q >= own:
-                f[q, a] -= fb
-            else:
-                band[q - lo, a] -= fb
+            f[p - lo, a] += fb
+            f[q - lo, a] -= fb
 
 
 @cached_kernel
