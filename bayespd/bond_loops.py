@@ -23,7 +23,10 @@ paths everywhere (the tests and benchmarks compare the two).
 """
 from __future__ import annotations
 
+import itertools
 import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import scipy.sparse as sp
@@ -59,13 +62,88 @@ def stretch(u: torch.Tensor, ends: tuple, xi: torch.Tensor, length: torch.Tensor
 
 def pmb_force(u: torch.Tensor, ends: tuple, xi: torch.Tensor, length: torch.Tensor, k: torch.Tensor,
               intact: torch.Tensor | None) -> torch.Tensor:
-    """f (N, dim) of PMB bonds of stiffness k (n_bonds,) at the intact fractions (None: all 1)."""
-    f = np.zeros(tuple(u.shape), dtype=u.detach().numpy().dtype)
-    mu = np.ones(1, dtype=f.dtype) if intact is None else intact.detach().numpy()
-    k = np.broadcast_to(k.detach().numpy(), length.shape)
-    _pmb_force(_BOND[u.shape[1]], u.detach().numpy(), *ends, xi.numpy(), length.numpy(), k, mu,
-               intact is not None, f)
+    """f (N, dim) of PMB bonds of stiffness k (n_bonds,) at the intact fractions (None: all 1),
+    over ``torch.get_num_threads()`` threads when there are enough bonds (``shared``)."""
+    un = u.detach().numpy()
+    mu = np.ones(1, dtype=un.dtype) if intact is None else intact.detach().numpy()
+    args = (_BOND[u.shape[1]], un, *ends, xi.numpy(), length.numpy(),
+            np.broadcast_to(k.detach().numpy(), length.shape), mu, intact is not None)
+    threads = torch.get_num_threads()
+    parts = shares(ends, SHARES_PER_THREAD * threads if threads > 1 else 1)
+    if len(parts) > 1:
+        return torch.from_numpy(shared(_pmb_force, args, parts, un.shape, un.dtype, threads))
+    f = np.zeros(un.shape, dtype=un.dtype)
+    _pmb_force(*args, 0, len(length), 0, f)
     return torch.from_numpy(f)
+
+
+MIN_SHARE = 1 << 15  # bonds per share below which one thread does the whole loop
+SHARES_PER_THREAD = 8
+
+
+def shared(kernel, args: tuple, parts: list, shape: tuple, dtype, threads: int) -> np.ndarray:
+    """The sum over the ``shares`` (b0, b1, lo, hi) of ``kernel(*args, b0, b1, lo, out)``, each
+    writing the rows [lo, hi) of f to an ``out`` of its own, added up in share order (the
+    same bits whichever thread ran a share). The calling thread and ``threads - 1`` pool
+    threads claim shares in turn; then the caller does again itself any share that no thread
+    has finished: on a busy machine a pool thread that the scheduler has set aside delays
+    nothing (where waiting for it costs a time slice), and the caller's extra work is at most
+    the shares that were under way elsewhere."""
+    results, lock, claim = [None] * len(parts), threading.Lock(), itertools.count()
+
+    def attempt(t):
+        b0, b1, lo, hi = parts[t]
+        out = np.zeros((hi - lo,) + tuple(shape[1:]), dtype=dtype)
+        kernel(*args, b0, b1, lo, out)
+        with lock:
+            if results[t] is None:
+                results[t] = out
+
+    def work():
+        while (t := next(claim)) < len(parts):
+            attempt(t)
+
+    for _ in range(threads - 1):
+        _pool(threads - 1).submit(work)
+    work()
+    for t in range(len(parts)):
+        if results[t] is None:
+            attempt(t)
+    f = np.zeros(shape, dtype=dtype)
+    for (_, _, lo, hi), out in zip(parts, results):
+        f[lo:hi] += out
+    return f
+
+
+def shares(ends: tuple, count: int) -> list[tuple[int, int, int, int]]:
+    """(first bond, end bond, lo, hi): ``count`` runs of consecutive bonds (at least
+    MIN_SHARE each, else fewer) and the range [lo, hi) of the particles each touches; short
+    ranges when the bonds are sorted by particle, as ``find_bonds`` sorts them."""
+    i, j = ends
+    n, count = len(i), max(1, min(count, len(i) // MIN_SHARE))
+    key = (id(i), id(j), count)
+    if key not in _SHARES:
+        cuts = [n * t // count for t in range(count + 1)]
+        parts = [(b0, b1, int(min(i[b0:b1].min(), j[b0:b1].min())), int(max(i[b0:b1].max(), j[b0:b1].max())) + 1)
+                 for b0, b1 in zip(cuts[:-1], cuts[1:])]
+        if len(_SHARES) > 64:
+            _SHARES.clear()
+        _SHARES[key] = (ends, parts)
+    return _SHARES[key][1]
+
+
+_SHARES: dict = {}  # (ids of i and j, count) -> ((i, j), kept alive while cached; the shares)
+_POOLS: dict = {}
+
+
+def _pool(workers: int) -> ThreadPoolExecutor:
+    """The threads that run ``shared``'s shares beside the caller (the kernels release the
+    GIL), per process: an executor's threads do not survive a fork. Between calls they wait
+    on a lock, where an OpenMP pool spins (on a shared machine, in another process's time)."""
+    key = (os.getpid(), workers)
+    if key not in _POOLS:
+        _POOLS[key] = ThreadPoolExecutor(workers, thread_name_prefix="bond_loops")
+    return _POOLS[key]
 
 
 def tangent_change(u_before: np.ndarray, u_after: np.ndarray, ends: tuple, xi: np.ndarray, length: np.ndarray,
@@ -117,8 +195,9 @@ def _compiled(fn):
     return fn if numba is None else numba.njit(nogil=True, inline="always")(fn)
 
 
-def _cached(fn):
-    """Compiled on first use and cached on disk (a kernel that takes no compiled function)."""
+def cached_kernel(fn):
+    """Compiled on first use and cached on disk (a kernel that takes no compiled function;
+    also for the loops of ``solvers.verlet_loops``)."""
     return fn if numba is None else numba.njit(nogil=True, cache=True)(fn)
 
 
@@ -154,8 +233,8 @@ def _stretch(bond, u, i, j, xi, length, s):  # pragma: no cover (compiled)
 
 
 @_compiled
-def _pmb_force(bond, u, i, j, xi, length, k, mu, damaged, f):  # pragma: no cover (compiled)
-    for b in range(i.shape[0]):
+def _pmb_force(bond, u, i, j, xi, length, k, mu, damaged, b0, b1, lo, f):  # pragma: no cover (compiled)
+    for b in range(b0, b1):
         kb = k[b] * mu[b] if damaged else k[b]
         if kb == 0.0:
             continue  # a broken bond: its force is exactly zero
@@ -164,11 +243,11 @@ def _pmb_force(bond, u, i, j, xi, length, k, mu, damaged, f):  # pragma: no cove
         t = kb * e / r
         for a in range(len(y)):
             fb = y[a] * t
-            f[p, a] += fb
-            f[q, a] -= fb
+            f[p - lo, a] += fb
+            f[q - lo, a] -= fb
 
 
-@_cached
+@cached_kernel
 def _components(i, j, keep, labels):  # pragma: no cover (compiled)
     """Union-find with path halving, each root the lowest vertex of its piece; then the
     labels in vertex order (a root comes before the rest of its piece). The root of the
@@ -229,7 +308,7 @@ def _tangent_change(bond, u0, u1, i, j, xi, length, k, bonds, mu0, mu1, local, r
     return n
 
 
-@_cached
+@cached_kernel
 def _tally(intact, operated, broken, now):  # pragma: no cover (compiled)
     moved, count, differs = 0.0, 0, False
     for b in range(intact.shape[0]):
@@ -240,7 +319,7 @@ def _tally(intact, operated, broken, now):  # pragma: no cover (compiled)
     return moved, count, differs
 
 
-@_cached
+@cached_kernel
 def _damage_sums(i, j, w, mu, V, out):  # pragma: no cover (compiled)
     for ends, others in ((i, j), (j, i)):
         for b in range(mu.shape[0]):

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from bayespd.linalg.assembly import to_numpy
+from bayespd.solvers import verlet_loops
 from bayespd.solvers.linear import as_matvec, hessian_operator, largest_eigenvalue
 
 
@@ -110,13 +111,20 @@ def velocity_verlet(force, mass, u0, dt: float, steps: int, v0=None, damping: fl
     monitor = GrowthMonitor(steps)
     saves = _Saver(u, save_every)
     saves_v = _Saver(v, save_every)
+    compiled = verlet_loops.usable(u, v, f, m)
     for n in range(1, steps + 1):
-        v_half = v + 0.5 * dt * (f / m - damping * v)
-        u_new = u + dt * v_half
-        f_new = force(u_new)
-        v = (v_half + 0.5 * dt * f_new / m) / (1 + 0.5 * damping * dt)
-        potential[n] = potential[n - 1] - 0.5 * float(((f + f_new) * (u_new - u)).sum())
-        kinetic[n] = 0.5 * float((m * v * v).sum())
+        if compiled:
+            v_half, u_new = verlet_loops.drift(u, v, f, m, dt, damping)
+            f_new = force(u_new)
+            v, work, kinetic[n] = verlet_loops.kick(v_half, f_new, m, dt, damping, f, u_new, u)
+            potential[n] = potential[n - 1] - work
+        else:
+            v_half = v + 0.5 * dt * (f / m - damping * v)
+            u_new = u + dt * v_half
+            f_new = force(u_new)
+            v = (v_half + 0.5 * dt * f_new / m) / (1 + 0.5 * damping * dt)
+            potential[n] = potential[n - 1] - 0.5 * float(((f + f_new) * (u_new - u)).sum().detach())
+            kinetic[n] = 0.5 * float((m * v * v).sum().detach())
         u, f = u_new, f_new
         if monitor(n, kinetic[n]):
             dt_crit = critical_time_step(stiffness if stiffness is not None else hessian_operator(force, u0), m)
