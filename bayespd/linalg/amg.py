@@ -26,23 +26,24 @@ import pyamg
 from pyamg import amg_core
 
 
-def rigid_body_modes(x: np.ndarray) -> np.ndarray:
-    """(N * dim, 3 or 6) rigid-body displacements of particles at ``x`` (N, dim), node-major:
-    translations, then rotations about the centroid."""
-    n, dim = x.shape
-    x = x - x.mean(axis=0)
-    if dim == 2:
-        B = np.zeros((n, 2, 3))
-        B[:, 0, 0] = B[:, 1, 1] = 1.0
-        B[:, 0, 2], B[:, 1, 2] = -x[:, 1], x[:, 0]
-    elif dim == 3:
-        B = np.zeros((n, 3, 6))
-        B[:, 0, 0] = B[:, 1, 1] = B[:, 2, 2] = 1.0
-        for k, (a, b) in enumerate([(0, 1), (1, 2), (2, 0)]):  # rotation in the (a, b) plane
-            B[:, a, 3 + k], B[:, b, 3 + k] = -x[:, b], x[:, a]
-    else:
+def rigid_body_modes(x: np.ndarray, component: np.ndarray | None = None) -> np.ndarray:
+    """(n, 3 or 6) rigid-body displacements (translations, then rotations about the centroid)
+    at n dofs located at ``x`` (n, dim), dof k displacing along axis ``component[k]``. Without
+    ``component``, ``x`` are particles (N, dim) and the dofs node-major (N * dim of them)."""
+    if component is None:
+        n, dim = x.shape
+        x, component = np.repeat(x, dim, axis=0), np.tile(np.arange(dim), n)
+    dim = x.shape[1]
+    if dim not in (2, 3):
         raise ValueError(f"rigid-body modes need 2D or 3D positions, got dim = {dim}")
-    return B.reshape(n * dim, -1)
+    x = x - x.mean(axis=0)
+    planes = [(0, 1)] if dim == 2 else [(0, 1), (1, 2), (2, 0)]  # rotation in the (a, b) plane
+    B = np.zeros((len(x), dim + len(planes)))
+    rows = np.arange(len(x))
+    B[rows, component] = 1.0
+    for k, (a, b) in enumerate(planes):
+        B[:, dim + k] = np.where(component == a, -x[:, b], 0.0) + np.where(component == b, x[:, a], 0.0)
+    return B
 
 
 def pair_operator(terms, free_index: np.ndarray) -> sp.csr_matrix:
@@ -93,11 +94,16 @@ class VCycle:
 def amg_preconditioner(terms, free_index: np.ndarray, positions: np.ndarray) -> VCycle:
     """The V-cycle of smoothed aggregation on K_b (``pair_operator``) with the rigid-body
     modes of ``positions`` (N, dim) as near-null space."""
-    K = pair_operator(terms, free_index)
     modes = rigid_body_modes(np.asarray(positions, dtype=np.float64))[free_index]
+    return v_cycle(pair_operator(terms, free_index), modes)
+
+
+def v_cycle(K: sp.csr_matrix, modes: np.ndarray) -> VCycle:
+    """The V-cycle of smoothed aggregation on an SPD matrix K with near-null space ``modes``
+    (its rigid-body modes, for elasticity)."""
     smoother = ("gauss_seidel", {"sweep": "forward"})
     with threadpool_limits(1, user_api="blas"):
         hierarchy = pyamg.smoothed_aggregation_solver(
-            K, B=modes, max_coarse=300, improve_candidates=None, presmoother=smoother,
+            sp.csr_matrix(K), B=modes, max_coarse=300, improve_candidates=None, presmoother=smoother,
             postsmoother=("gauss_seidel", {"sweep": "backward"}))
     return VCycle(hierarchy)
