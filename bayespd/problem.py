@@ -150,6 +150,10 @@ class Scene:
 
     def stiffness_values(self, params: dict) -> torch.Tensor:
         """Values of A = K_ff + eps I on ``constraints.pattern``, differentiable (direct solver)."""
+        if self.solver != "direct":
+            raise ValueError(f"stiffness_values needs the assembled K, but this scene is solved "
+                             f"matrix-free (solver={self.solver!r}, chosen by size when 'auto'): "
+                             "build it with Scene(..., solver='direct')")
         p = self._params(params)
         values = self.constraints.free_values(self.material.stiffness(p))
         return values + self.eps * self._diagonal if self.eps else values

@@ -127,6 +127,8 @@ def test_auto_solver_is_amg_above_the_crossover_and_direct_below():
     u, u_direct = large.solve(params), small.solve(params)
     factor.solve(np.ones(len(large.constraints.free_dofs)))
     assert factor.iterations > 1  # a V-cycle, not an exact coarse solve
+    with pytest.raises(ValueError, match="solver='direct'"):
+        large.stiffness_values(params)
     assert float((u - u_direct).norm()) <= 1e-8 * float(u_direct.norm())
 
 
