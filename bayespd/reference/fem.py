@@ -140,12 +140,13 @@ def _check_aligned(region: Region, h: float) -> None:
 
 
 def spd_solve(A, b: np.ndarray, modes: np.ndarray | None = None) -> np.ndarray:
-    """Solve a sparse SPD system with bayespd's backend (CHOLMOD when installed, else SuperLU),
-    or, where ``linalg.choose_solver`` says so and the rigid-body ``modes`` (n, 3 | 6) are
-    given, by PCG with the AMG V-cycle to a relative residual of 1e-10 (the Q2 meshes of the
-    3D cantilever fill SuperLU's factor past 4 GB)."""
-    dim = 2 if modes is None or modes.shape[1] == 3 else 3
-    if modes is not None and choose_solver(A.shape[0], dim, default_backend()) == "amg":
+    """Solve a sparse SPD system with bayespd's backend (CHOLMOD when installed, else SuperLU);
+    a 3D system (``modes``: its 6 rigid-body modes) where ``linalg.choose_solver`` says so by
+    PCG with the AMG V-cycle to a relative residual of 1e-10: SuperLU's factor of the 3D
+    cantilever's Q2 mesh grew past 4 GB (AMG: 241 iterations, 28 s, 1.9 GB peak). 2D systems
+    stay direct: SuperLU factorises the beam's 200k-dof Q2 mesh in seconds, where its graded
+    cells cost AMG 386 iterations (21 s; benchmarks/README.md, issue 31)."""
+    if modes is not None and modes.shape[1] == 6 and choose_solver(A.shape[0], 3, default_backend()) == "amg":
         A = sp.csr_matrix(A)
         return PCGFactor(A.__matmul__, v_cycle(A, modes), A.shape[0], rtol=1e-10).solve(b)
     A = A.tocsc()
