@@ -23,7 +23,8 @@ test: $(STAMP)
 test-all: $(STAMP)
 	$(BIN)/python -m pytest -q -m "slow or not slow"
 
-# Optional CHOLMOD backend (needs Debian's libsuitesparse-dev and libopenblas0-pthread).
+# Optional CHOLMOD backend (needs Debian's libsuitesparse-dev and libopenblas0-pthread); the
+# default install solves large scenes with AMG-PCG (pyamg) instead, .ci/run tests both.
 fast: $(STAMP)
 	$(BIN)/pip install --quiet -c constraints.txt -e ".[dev,fast]"
 

@@ -10,6 +10,8 @@ import numpy as np
 import torch
 
 from bayespd.connectivity import floating_particles
+from bayespd.linalg.config import STATIC_SOLVERS, choose_solver, refuse_superlu_fill
+from bayespd.linalg.sparse import default_backend
 from bayespd.linalg.stiffness_solver import Assembly
 from bayespd.boundary import Constraints, Dirichlet, Load
 from bayespd.materials.checks import NonFiniteParameterError
@@ -41,17 +43,22 @@ class Scene:
       eigendecomposition, paid only when a stochastic solver first asks (``covariance``);
     * ``eps`` >= 0: the confinement of Dodwell 2019 eq 3, (eps/2) sum_i u_i.u_i: the operator on
       the free dofs is A = K_ff + eps I (direct solver only).
+
+    ``solver``: "auto" (default) picks a direct factorisation or the matrix-free PCG with
+    algebraic multigrid ("amg") by size and installed backends (``bayespd.linalg.config``);
+    "direct", "pcg" (bond-graph Laplacian factor, ``precondition_radius``) or "amg" force one.
+    The chosen one is ``scene.solver``; iterative solves stop at a relative residual ``rtol``.
     """
 
     def __init__(self, material, dirichlet: list[Dirichlet], loads: list[Load] = (),
                  observation: LinearObservation | None = None, *, damage=None, noise=None,
-                 eps: float = 0.0, solver: str = "direct", precondition_radius: float | None = 1.5,
+                 eps: float = 0.0, solver: str = "auto", precondition_radius: float | None = 1.5,
                  rtol: float = 1e-10):
         p = material.particles
         if not eps >= 0:
             raise ValueError(f"the confinement eps must be >= 0, got {eps}")
         finite("the confinement eps", eps, "pass a finite eps >= 0")
-        if eps and solver != "direct":
+        if eps and solver not in ("direct", "auto"):
             raise ValueError("eps > 0 needs solver='direct'")
         self.eps = float(eps)
         if not dirichlet:
@@ -68,8 +75,12 @@ class Scene:
         self.material, self.particles, self.observation = material, p, observation
         self.dirichlet, self.loads = list(dirichlet), list(loads)
         self.damage, self.noise = damage, noise
-        if solver not in ("direct", "pcg"):
-            raise ValueError("solver must be 'direct' (CHOLMOD/SuperLU) or 'pcg' (matrix-free)")
+        if solver not in STATIC_SOLVERS:
+            raise ValueError("solver must be 'auto' (by size, bayespd.linalg.config), 'direct' "
+                             "(CHOLMOD/SuperLU), 'pcg' or 'amg' (matrix-free)")
+        if solver == "auto":
+            solver = choose_solver(p.n * p.dim, p.dim, default_backend(),
+                                   needs_matrix=bool(eps) or not getattr(material, "matrix_free", True))
         self.solver, self.rtol = solver, rtol
         direct = solver == "direct"
         self.constraints = Constraints(p, material.pattern if direct else None, self.dirichlet)
@@ -80,7 +91,7 @@ class Scene:
         # |xi| <= precondition_radius * h (None: all bonds)
         self._assembly = None if direct else Assembly(material.grams(), self.constraints.free_mask)
         self._precondition_rows = None
-        if not direct and precondition_radius is not None:
+        if solver == "pcg" and precondition_radius is not None:
             short = material.bonds.length <= precondition_radius * p.h * (1 + 1e-9)
             self._precondition_rows = {material.grams()[0]: short}
         _refuse_floating_pieces(material.bonds, self.constraints.fixed_particles)
@@ -139,6 +150,10 @@ class Scene:
 
     def stiffness_values(self, params: dict) -> torch.Tensor:
         """Values of A = K_ff + eps I on ``constraints.pattern``, differentiable (direct solver)."""
+        if self.solver != "direct":
+            raise ValueError(f"stiffness_values needs the assembled K, but this scene is solved "
+                             f"matrix-free (solver={self.solver!r}, chosen by size when 'auto'): "
+                             "build it with Scene(..., solver='direct')")
         p = self._params(params)
         values = self.constraints.free_values(self.material.stiffness(p))
         return values + self.eps * self._diagonal if self.eps else values
@@ -155,10 +170,13 @@ class Scene:
         c, m = self.constraints, self.material
         with torch.no_grad():
             if self.solver == "direct":
+                if default_backend() == "splu":
+                    refuse_superlu_fill(c.pattern.nnz)
                 values = c.free_values(m.numeric_stiffness(p))
                 return c.pattern.factorize(values + self.eps * self._diagonal if self.eps else values)
-            return self._assembly.factorize(m.terms(p), "pcg", rtol=self.rtol,
-                                            precondition_rows=self._precondition_rows)
+            return self._assembly.factorize(m.terms(p), self.solver, rtol=self.rtol,
+                                            precondition_rows=self._precondition_rows,
+                                            positions=self.particles.x)
 
     def factor(self, params: dict):
         """The factorised free-dof operator at ``params`` (no autograd): ``.solve(b)`` for numpy

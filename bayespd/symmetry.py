@@ -73,6 +73,8 @@ class Folded:
     what the linear static ``Scene`` uses of a material (pattern, differentiable stiffness and
     form, bonds among the kept particles), for the direct solver."""
 
+    matrix_free = False  # Scene(solver="auto") solves it directly at any size
+
     def __init__(self, plane: SymmetryPlane, material):
         self.base, self.particles = material, plane.particles
         self.param_names, self.moduli_names = material.param_names, material.moduli_names

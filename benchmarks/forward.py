@@ -14,12 +14,15 @@ For each particle count, m = delta/h, material (LPS or bond-based PMB) and solve
 Each configuration runs in its own process so that peak memory is its own.
 
     python benchmarks/forward.py [--sizes 10000 40000 160801] [--m 2 3]
-        [--materials lps pmb] [--solvers cholmod splu pcg pcg-short] [--threads 2]
+        [--materials lps pmb] [--solvers cholmod splu pcg pcg-short amg] [--threads 2]
 
 Solvers: ``cholmod``/``splu`` = direct on the assembled K; ``pcg`` = matrix-free conjugate
 gradients preconditioned by the Cholesky factor of the bond-graph Laplacian (all bonds);
-``pcg-short`` = the same with only the nearest bonds (|xi| <= 1.5 h) in the preconditioner.
-``--scene`` also times the differentiable ``Scene.solve`` and its gradient (direct only).
+``pcg-short`` = the same with only the nearest bonds (|xi| <= 1.5 h) in the preconditioner;
+``amg`` = the same PCG preconditioned by a smoothed-aggregation V-cycle on the bond operator
+with the rigid-body modes (``bayespd.linalg.amg``; "factorise" is the AMG set-up).
+``--scene`` also times the differentiable ``Scene.solve`` (forward: set-up + one solve) and its
+gradient (the adjoint: one more solve with the same factor or preconditioner).
 """
 from __future__ import annotations
 
@@ -40,6 +43,7 @@ def run_one(n: int, m: float, material: str, solver: str, threads: int, scene: b
     import bayespd as bp
     from bayespd import linalg
     from bayespd.linalg import sparse
+    from bayespd.linalg.amg import amg_preconditioner
     from bayespd.linalg.stiffness_solver import Assembly
 
     torch.set_num_threads(threads)
@@ -83,7 +87,10 @@ def run_one(n: int, m: float, material: str, solver: str, threads: int, scene: b
         matvec = asm.operator(num_terms)
         out["assemble_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
-        precondition = asm.laplacian_preconditioner(num_terms, rows)
+        if solver == "amg":
+            precondition = amg_preconditioner(num_terms, asm.free_index, p.x)
+        else:
+            precondition = asm.laplacian_preconditioner(num_terms, rows)
         out["factorise_s"] = time.perf_counter() - t0
         factor = sparse.PCGFactor(matvec, precondition, len(f), rtol=1e-10)
     t0 = time.perf_counter()
@@ -94,9 +101,12 @@ def run_one(n: int, m: float, material: str, solver: str, threads: int, scene: b
         out["iterations"] = factor.iterations
     check = asm.operator([(g, d.detach().numpy(), w.detach().numpy()) for g, d, w in terms])
     out["rel_residual"] = float(np.linalg.norm(check(u) - f) / np.linalg.norm(f))
-    if scene and direct:
-        sparse.default_backend = lambda: solver
-        sc = bp.Scene(mat, [bp.Dirichlet.layer(p, "left", m * h)], [bp.Load(p.layer("right", h), (1.0, 0.0))])
+    if scene:
+        if direct:
+            sparse.default_backend = lambda: solver
+        kind = {"cholmod": "direct", "splu": "direct", "pcg": "pcg", "pcg-short": "pcg"}.get(solver, solver)
+        sc = bp.Scene(mat, [bp.Dirichlet.layer(p, "left", m * h)], [bp.Load(p.layer("right", h), (1.0, 0.0))],
+                      solver=kind, precondition_radius=None if solver == "pcg" else 1.5)
         q = {"K": torch.tensor(3333.0, requires_grad=True), "G": torch.tensor(1538.0, requires_grad=True),
              "delta": torch.tensor(m * h, requires_grad=True)}
         q = {k: q[k] for k in sc.param_names}
@@ -116,7 +126,7 @@ def main():
     parser.add_argument("--m", type=float, nargs="+", default=[2.0, 3.0])
     parser.add_argument("--materials", nargs="+", default=["lps"], choices=["lps", "pmb"])
     parser.add_argument("--solvers", nargs="+", default=["cholmod", "pcg-short"],
-                        choices=["cholmod", "splu", "pcg", "pcg-short"])
+                        choices=["cholmod", "splu", "pcg", "pcg-short", "amg"])
     parser.add_argument("--threads", type=int, default=2, help="torch and OpenBLAS threads")
     parser.add_argument("--scene", action="store_true", help="also time Scene.solve + gradient")
     parser.add_argument("--timeout", type=float, default=900, help="seconds per configuration")
@@ -165,7 +175,8 @@ def main():
                     r = min(runs, key=lambda x: x["total_s"])
                     extra = ""
                     if "scene_solve_s" in r:
-                        extra = f"  scene {r['scene_solve_s']:.2f} grad {r['gradient_s']:.2f}"
+                        extra = (f"  scene {r['scene_solve_s']:.2f} grad {r['gradient_s']:.2f} "
+                                 f"(ratio {r['gradient_s'] / r['scene_solve_s']:.2f})")
                     print(f"{r['particles']:>9} {m:>3g} {material:>4} {s:>9} {r.get('nnz', 0):>10} "
                           f"{r['setup_s']:>6.2f} {r['assemble_s']:>6.2f} {r['factorise_s']:>7.2f} "
                           f"{r['solve_s']:>6.2f} {r['total_s']:>7.2f} {r.get('iterations', ''):>4} "

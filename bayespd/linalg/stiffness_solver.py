@@ -12,6 +12,7 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
+from bayespd.linalg.amg import amg_preconditioner
 from bayespd.linalg.assembly import Gram, numeric_values, to_numpy, union_pattern
 from bayespd.linalg.config import current_settings
 from bayespd.linalg.sparse import (NotPositiveDefiniteError, Pattern, PCGFactor, blas_threads, cholmod,
@@ -34,6 +35,9 @@ class Assembly:
       Gram to a boolean mask of the rows (bonds) the preconditioner keeps: keeping only the
       nearest bonds (|xi| <= 1.5 h) gives a factor much cheaper than K's at the price of more
       iterations (benchmarks/README.md). Converges to ``rtol`` or raises ``ConvergenceError``.
+    * ``method="amg"``: the same matrix-free PCG preconditioned by a smoothed-aggregation
+      V-cycle on the bond part of K with the rigid-body modes of ``positions`` (N, dim) as
+      near-null space (``bayespd.linalg.amg``): no factorisation, nothing from CHOLMOD.
     """
 
     def __init__(self, grams: list[Gram], free: np.ndarray | None = None,
@@ -67,15 +71,22 @@ class Assembly:
         return values if entries is None else values[torch.as_tensor(entries)]
 
     def factorize(self, terms, method: str = "direct", backend: str | None = None,
-                  rtol: float = 1e-10, maxiter: int | None = None, precondition_rows=None):
+                  rtol: float = 1e-10, maxiter: int | None = None, precondition_rows=None,
+                  positions: np.ndarray | None = None):
         if method == "direct":
             return self.free_pattern.factorize(self.values(terms), backend)
+        if method not in ("pcg", "amg"):
+            raise ValueError(f"unknown method {method!r}: use 'direct', 'pcg' or 'amg'")
+        terms = [(g, to_numpy(d), to_numpy(w)) for g, d, w in terms]
         if method == "pcg":
-            terms = [(g, to_numpy(d), to_numpy(w)) for g, d, w in terms]
             precondition = self.laplacian_preconditioner(terms, precondition_rows, backend)
-            return PCGFactor(self.operator(terms), precondition, len(self.free_index),
-                             rtol=rtol, maxiter=maxiter)
-        raise ValueError(f"unknown method {method!r}: use 'direct' or 'pcg'")
+        elif positions is None:
+            raise ValueError("method='amg' needs the particles' positions (N, dim) for the "
+                             "rigid-body modes: pass positions=particles.x")
+        else:
+            precondition = amg_preconditioner(terms, self.free_index, positions)
+        return PCGFactor(self.operator(terms), precondition, len(self.free_index),
+                         rtol=rtol, maxiter=maxiter)
 
     def operator(self, terms, threads: int | None = None):
         """x -> K_ff x matrix-free (numpy, x of shape (n_free,) or (n_free, k)).

@@ -15,9 +15,12 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 import torch
 
-from bayespd.linalg.sparse import Pattern
+from bayespd.linalg.amg import rigid_body_modes, v_cycle
+from bayespd.linalg.config import choose_solver
+from bayespd.linalg.sparse import Pattern, PCGFactor, default_backend
 
 
 def require_skfem():
@@ -165,8 +168,16 @@ def _check_aligned(region: Region, h: float) -> None:
                              "pick h dividing every region corner")
 
 
-def spd_solve(A, b: np.ndarray) -> np.ndarray:
-    """Solve a sparse SPD system with bayespd's backend (CHOLMOD when installed, else SuperLU)."""
+def spd_solve(A, b: np.ndarray, modes: np.ndarray | None = None) -> np.ndarray:
+    """Solve a sparse SPD system with bayespd's backend (CHOLMOD when installed, else SuperLU);
+    a 3D system (``modes``: its 6 rigid-body modes) where ``linalg.choose_solver`` says so by
+    PCG with the AMG V-cycle to a relative residual of 1e-10: SuperLU's factor of the 3D
+    cantilever's Q2 mesh grew past 4 GB (AMG: 241 iterations, 28 s, 1.9 GB peak). 2D systems
+    stay direct: SuperLU factorises the beam's 200k-dof Q2 mesh in seconds, where its graded
+    cells cost AMG 386 iterations (21 s; benchmarks/README.md, issue 31)."""
+    if modes is not None and modes.shape[1] == 6 and choose_solver(A.shape[0], 3, default_backend()) == "amg":
+        A = sp.csr_matrix(A)
+        return PCGFactor(A.__matmul__, v_cycle(A, modes), A.shape[0], rtol=1e-10).solve(b)
     A = A.tocsc()
     A.sum_duplicates()
     A.sort_indices()
@@ -295,5 +306,9 @@ def solve_mesh(mesh, E: float, nu: float, supports: list[Support], loads: list[B
         raise ValueError("no dof lies in the support regions: the problem is singular")
     u = np.zeros(basis.N)
     free = np.setdiff1d(np.arange(basis.N), D)
-    u[free] = spd_solve(A[free][:, free], b[free])
+    component = np.empty(basis.N, dtype=np.int64)
+    for c, idx in enumerate(comps):
+        component[idx] = c
+    modes = rigid_body_modes(basis.doflocs.T, component)[free]
+    u[free] = spd_solve(A[free][:, free], b[free], modes)
     return FESolution(basis, axes, u, h, order, time.perf_counter() - start)

@@ -58,3 +58,24 @@ def test_bad_settings_are_refused_and_change_nothing(bad):
     assert linalg.current_settings() is before
     with pytest.raises(dataclasses.FrozenInstanceError):
         before.factor_threads = 3
+
+
+def test_choose_solver_by_size_backend_and_settings():
+    """Direct up to the measured crossover of the backend and dimension, AMG above it; a scene
+    needing the assembled K is direct at any size; the settings override both."""
+    from bayespd.linalg.config import DIRECT_MAX_DOFS
+
+    limit = DIRECT_MAX_DOFS[("splu", 2)]
+    assert linalg.choose_solver(limit, 2, "splu") == "direct"
+    assert linalg.choose_solver(limit + 1, 2, "splu") == "amg"
+    assert linalg.choose_solver(limit + 1, 3, "splu") == "amg"  # 3D fills sooner
+    assert DIRECT_MAX_DOFS[("splu", 3)] < limit <= DIRECT_MAX_DOFS[("cholmod", 2)]
+    assert linalg.choose_solver(10**7, 2, "splu", needs_matrix=True) == "direct"
+    with linalg.settings(direct_max_dofs=10):
+        assert linalg.choose_solver(11, 2, "cholmod") == "amg"
+    with linalg.settings(static_solver="direct"):
+        assert linalg.choose_solver(10**7, 3, "splu") == "direct"
+    with pytest.raises(ValueError, match="static_solver must be one of"):
+        linalg.LinalgSettings(static_solver="cg")
+    with pytest.raises(ValueError, match="direct_max_dofs"):
+        linalg.LinalgSettings(direct_max_dofs=-1)

@@ -6,6 +6,7 @@ import scipy.sparse as sp
 
 pytest.importorskip("skfem")
 
+from bayespd.linalg.amg import v_cycle  # noqa: E402
 from bayespd.reference.fem import (BodyLoad, Region, Support, graded_axis, isotropic_stiffness,  # noqa: E402
                                    solve_box, spd_solve)
 
@@ -147,3 +148,30 @@ def test_bad_input_names_the_fix():
     fe = solve_box((4.0, 2.0), 1.0, 1.0, 0.3, sup, load, order=1)
     with pytest.raises(ValueError, match="outside the FE box"):
         fe.at([[5.0, 1.0]])
+
+
+def test_a_large_3d_fe_system_is_solved_by_amg_with_its_rigid_body_modes(monkeypatch):
+    """Above the solver crossover (lowered here to 100 dofs) the 3D FE peer's system goes to
+    PCG with the AMG V-cycle built on the mesh's 6 rigid-body modes, and agrees with the direct
+    factor to 1e-8 relative (kappa * rtol); below it, and for any 2D system, the direct factor
+    solves it."""
+    from bayespd import linalg
+    from bayespd.reference import fem
+
+    calls = []
+    monkeypatch.setattr(fem, "v_cycle", lambda A, modes: calls.append(modes.shape) or v_cycle(A, modes))
+
+    def solve(dim):
+        extent = (8.0, 4.0) if dim == 2 else (4.0, 2.0, 2.0)
+        support = [Support(Region((0.0,) * dim, (1.0,) + extent[1:]), (0.0,) * dim)]
+        load = [BodyLoad(Region((extent[0] - 1.0,) + (0.0,) * (dim - 1), extent), (0.0,) * (dim - 1) + (-5.0,))]
+        return solve_box(extent, 1.0, 1000.0, 0.3, support, load, order=2, plane="stress" if dim == 2 else None).u
+
+    direct = solve(3)
+    assert calls == []
+    with linalg.settings(direct_max_dofs=100):
+        solve(2)
+        assert calls == []
+        amg = solve(3)
+    assert calls and calls[0][1] == 6
+    assert np.linalg.norm(amg - direct) <= 1e-8 * np.linalg.norm(direct)

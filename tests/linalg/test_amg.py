@@ -1,0 +1,65 @@
+"""The AMG preconditioner (``bayespd.linalg.amg``): rigid-body modes in the bond operator's null
+space, a symmetric positive-definite V-cycle, and the PCG it preconditions against the direct
+solve, in fewer iterations than the bond-graph Laplacian needs."""
+import numpy as np
+import pytest
+
+import bayespd as bp
+from bayespd.linalg.amg import amg_preconditioner, pair_operator, rigid_body_modes
+from bayespd.linalg.stiffness_solver import Assembly
+from tests.linalg.linalg_systems import lps_terms
+
+
+def clamped(nx=30, ny=12):
+    p, bonds, mat, terms = lps_terms(nx=nx, ny=ny)
+    asm = Assembly(mat.grams(), ~np.repeat(p.layer("left", 2.6), 2))
+    return p, asm, terms
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_rigid_body_modes_are_the_bond_operators_null_space(dim):
+    """K_b B = 0 to rounding (1e-12 of ||K_b|| ||B||) for the 3 (2D) / 6 (3D) rigid-body modes of
+    an unconstrained body: a rigid motion stretches no bond."""
+    p = bp.grid_2d(8.0, 5.0, 1.0) if dim == 2 else bp.grid_3d(5.0, 4.0, 3.0, 1.0)
+    kw = {"plane": "stress"} if dim == 2 else {}
+    mat = bp.LPS(p, bp.find_bonds(p, 2.2), **kw)
+    terms = mat.terms({"K": 3000.0, "G": 1500.0, "delta": 2.2})
+    K = pair_operator(terms, np.arange(p.n * dim))
+    B = rigid_body_modes(p.x)
+    assert B.shape == (p.n * dim, 3 if dim == 2 else 6)
+    assert np.linalg.matrix_rank(B) == B.shape[1]
+    assert np.abs(K @ B).max() <= 1e-12 * abs(K).sum(axis=1).max() * np.abs(B).max()
+
+
+def test_the_v_cycle_is_symmetric_positive_definite_and_columnwise():
+    """v^T M^-1 w = w^T M^-1 v to 1e-12 relative (backward after forward Gauss-Seidel),
+    v^T M^-1 v > 0, and a two-column right-hand side gives each column's result."""
+    p, asm, terms = clamped()
+    cycle = amg_preconditioner([(g, d.numpy(), w.numpy()) for g, d, w in terms], asm.free_index, p.x)
+    assert len(cycle.levels) >= 1  # a real hierarchy, not only the coarse solve
+    V = np.random.default_rng(0).standard_normal((len(asm.free_index), 2))
+    MV = cycle(V)
+    assert abs(V[:, 0] @ MV[:, 1] - V[:, 1] @ MV[:, 0]) <= 1e-12 * np.abs(V[:, 0] @ MV[:, 1])
+    assert np.all(np.einsum("ij,ij->j", V, MV) > 0)
+    np.testing.assert_allclose(MV[:, 1], cycle(V[:, 1]), rtol=1e-13, atol=1e-15 * np.abs(MV).max())
+
+
+def test_amg_pcg_matches_the_direct_solve_in_few_iterations():
+    """PCG with the V-cycle reaches rtol = 1e-10 and agrees with SuperLU to 1e-8 relative
+    (kappa(K) rtol); it needs at most 2/3 of the iterations of the bond-graph Laplacian factor
+    (measured 12 against 35 here, 23 against 35 at 160k particles)."""
+    p, asm, terms = clamped()
+    rhs = np.random.default_rng(1).standard_normal(len(asm.free_index))
+    exact = asm.factorize(terms, "direct", backend="splu").solve(rhs)
+    amg = asm.factorize(terms, "amg", rtol=1e-10, positions=p.x)
+    lap = asm.factorize(terms, "pcg", rtol=1e-10)
+    x = amg.solve(rhs)
+    lap.solve(rhs)
+    assert np.linalg.norm(x - exact) <= 1e-8 * np.linalg.norm(exact)
+    assert amg.iterations <= (2 * lap.iterations) // 3, (amg.iterations, lap.iterations)
+
+
+def test_amg_needs_positions():
+    p, asm, terms = clamped(nx=10, ny=6)
+    with pytest.raises(ValueError, match="positions=particles.x"):
+        asm.factorize(terms, "amg")
