@@ -1,7 +1,9 @@
 """The cost of the posterior predictive of a Laplace fit at ~5k particles: the fit with
 ``predictive=False`` (timed once), then the replay ``fit`` adds for every draw (one factorisation, then CG preconditioned by
 it: ``bayespd.linalg.reuse``), a thinned replay (``predictive=20``), and, for comparison, the
-replay with a fresh factorisation per draw (reuse switched off).
+replay with a fresh factorisation per draw (reuse switched off); then the same fit with its
+predictive on a reduced scene (``bp.ReducedScene`` from 30 prior draws, tolerance 1 % of the
+noise sd), its build included, and how far its posterior is from the full fit's.
 
 Scene: benchmarks/inference.py's ``5k`` plate with a hole (h = 0.4 mm, delta_max = 3 h,
 4,684 particles, 9.4k dofs, ``rule="smooth"``), data from the model plus 1 % noise;
@@ -18,6 +20,7 @@ import time
 
 import inference as bi  # noqa: F401  (experiments/ on sys.path, one torch thread)
 
+import bayespd as bp
 from bayespd.infer import fit
 from bayespd.infer import replay as replay_module
 from bayespd.linalg import sparse
@@ -56,6 +59,23 @@ def main(draws: int):
     print("| run | Laplace fit (s) | replay (s) | total (s) |\n|---|---|---|---|")
     for name, replay_s in runs.items():
         print(f"| {name} | {fit_s:.1f} | {replay_s:.1f} | {fit_s + replay_s:.1f} |")
+    reduced_fit(scene, y, sigma, start, draws, tree)
+
+
+def reduced_fit(scene, y, sigma, start, draws, full_tree):
+    """The Laplace fit and its predictive on a reduced scene, build included, against the full fit."""
+    noise = 0.05 * float(y.abs().max())
+    model = elastic_plate(scene, demo.NOMINAL, noise_scale=noise)
+    snapshots = bp.prior_draws(model.priors, 30, 0, names=["K", "G", "delta"])
+    reduced, build_s = timed(lambda: bp.ReducedScene(scene, snapshots, 0.01 * sigma))
+    tree, fit_s = timed(lambda: fit(elastic_plate(reduced, demo.NOMINAL, noise_scale=noise), {"y": y}, "laplace",
+                                    num_samples=draws, progress=False, init_values=start))
+    print(f"reduced (rank {reduced.rank}): build {build_s:.1f} s + Laplace with predictive({draws}) "
+          f"{fit_s:.1f} s = {build_s + fit_s:.1f} s")
+    for k in ("K", "G", "delta", "sigma"):
+        a, b = tree["posterior"][k].values.ravel(), full_tree["posterior"][k].values.ravel()
+        print(f"  {k}: reduced mean {a.mean():.5g} sd {a.std():.3g}, full mean {b.mean():.5g} sd {b.std():.3g}: "
+              f"{(a.mean() - b.mean()) / b.std():+.3f} full sd, sd ratio {a.std() / b.std():.3f}")
 
 
 if __name__ == "__main__":
