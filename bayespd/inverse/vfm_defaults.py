@@ -94,6 +94,14 @@ def with_rule(scene, rule: str, delta_max: float):
     return bp.Scene(material, scene.dirichlet, scene.loads, scene.observation)
 
 
+def model_spread(candidates, best, dof: int) -> dict:
+    """The largest relative change of K and G from ``best`` over the candidates the noise cannot
+    tell from it: chi2 within 2 sd of a chi2 with ``dof`` degrees of freedom (2 sqrt(2 dof)) of
+    the least. A model-form uncertainty that the standard error does not contain."""
+    close = [c for c in candidates if c["score"] <= best["score"] + 2 * np.sqrt(2 * max(dof, 1))]
+    return {k: max(abs(c[k] / best[k] - 1) for c in close) for k in ("K", "G")}
+
+
 def estimate(scene, u, *, observed=None, sigma: float | None = None, fields=None, ms=MS,
              rules=RULES, size: float | None = None, max_se: float | None = MAX_SE) -> VFMResult:
     """K, G of the LPS ``scene`` from the measured field ``u`` (N, dim; NaN where not
@@ -105,8 +113,10 @@ def estimate(scene, u, *, observed=None, sigma: float | None = None, fields=None
     by ``vfm_noise.weighted_identify`` (noise-optimal combination of the fields, errors in
     variables corrected), the residual criterion is its chi2 (Phi weighted by the noise
     covariance), and the result's ``extra['se']`` holds the relative standard errors of K and
-    G; a :class:`vfm_noise.NoisyEstimateWarning` says when one exceeds ``max_se``. Candidates
-    whose system the noise swamps are skipped (``extra['candidates']`` says why).
+    G, and ``extra['model_spread']`` (:func:`model_spread`) how far the candidates the noise
+    cannot tell apart differ; a :class:`vfm_noise.NoisyEstimateWarning` says when either
+    exceeds ``max_se``. Candidates whose system the noise swamps are skipped
+    (``extra['candidates']`` says why).
 
     The result's ``extra`` holds the chosen ``m``, ``rule``, ``delta`` and every candidate's
     ``phi`` (and ``chi2``, ``se``) and estimates."""
@@ -143,8 +153,10 @@ def estimate(scene, u, *, observed=None, sigma: float | None = None, fields=None
     table = [{k: v for k, v in c.items() if k != "result"} for c in candidates] + failures
     extra = dict(best["result"].extra, m=best["m"], rule=best["rule"], delta=best["m"] * h,
                  candidates=table, fields=len(fields))
-    if sigma is not None and max_se is not None:
-        warn_if_noisy(extra["se"], sigma, max_se)
+    if sigma is not None:
+        extra["model_spread"] = model_spread(candidates, best, extra["dof"])
+        if max_se is not None:
+            warn_if_noisy(extra["se"], sigma, max_se, extra["model_spread"])
     how = "least residual" if sigma is None else "least chi2, noise-weighted"
     return dataclasses.replace(best["result"], method=f"{best['result'].method}, (m, rule) by {how}",
                                extra=extra)

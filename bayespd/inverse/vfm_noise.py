@@ -74,13 +74,16 @@ class NoiseModel:
         return np.array([[np.sum(W * self.gram[p][q]) for q in range(2)] for p in range(2)])
 
 
-def warn_if_noisy(se: dict, sigma: float, max_se: float):
-    """:class:`NoisyEstimateWarning` when a relative standard error in ``se`` exceeds ``max_se``."""
-    if max(se.values()) > max_se:
-        warnings.warn(f"the VFM estimate's relative standard error (K {se['K']:.2%}, G {se['G']:.2%}) "
-                      f"exceeds {max_se:.2%} at noise sd {sigma:.3g}: trust it only to about 3 se. Reduce "
-                      "it with a finer grid or less noisy data (se ~ sigma / sqrt(particles))",
-                      NoisyEstimateWarning, stacklevel=3)
+def warn_if_noisy(se: dict, sigma: float, max_se: float, spread: dict | None = None):
+    """:class:`NoisyEstimateWarning` when a relative standard error in ``se`` (or a model
+    spread of ``vfm_defaults.model_spread``) exceeds ``max_se``."""
+    spread = spread or {"K": 0.0, "G": 0.0}
+    if max(se.values()) > max_se or max(spread.values()) > max_se:
+        warnings.warn(f"the VFM estimate's relative standard error (K {se['K']:.2%}, G {se['G']:.2%}) or "
+                      f"the spread over the horizons the noise cannot tell apart (K {spread['K']:.2%}, "
+                      f"G {spread['G']:.2%}) exceeds {max_se:.2%} at noise sd {sigma:.3g}: trust it only to "
+                      "about 3 se plus the spread. Reduce them with a finer grid or less noisy data "
+                      "(se ~ sigma / sqrt(particles))", NoisyEstimateWarning, stacklevel=3)
 
 
 def weighted_identify(work: VirtualWork, u, sigma: float, *, observed=None, iterations: int = 4,
