@@ -103,11 +103,12 @@ def model_spread(candidates, best, dof: int) -> dict:
 
 
 def estimate(scene, u, *, observed=None, sigma: float | None = None, fields=None, ms=MS,
-             rules=RULES, size: float | None = None, max_se: float | None = MAX_SE) -> VFMResult:
+             rules=RULES, size: float | None = None, clearance: float | None = None,
+             max_se: float | None = MAX_SE) -> VFMResult:
     """K, G of the LPS ``scene`` from the measured field ``u`` (N, dim; NaN where not
     measured) by the closed-form PD-VFM at the (m, rule) of least residual (module
-    docstring). ``fields`` default to :func:`interior_fields` with clearance 2 max(ms) h + h
-    (and bump cells of width ``size``).
+    docstring). ``fields`` default to :func:`interior_fields` with ``clearance`` (default
+    2 max(ms) h + h: no PD surface effect under the bumps) and bump cells of width ``size``.
 
     ``sigma``: the noise sd of each measured displacement. Given, every candidate is solved
     by ``vfm_noise.weighted_identify`` (noise-optimal combination of the fields, errors in
@@ -125,7 +126,8 @@ def estimate(scene, u, *, observed=None, sigma: float | None = None, fields=None
         raise ValueError(f"ms must be a non-empty tuple of integers and rules a subset of {RULES}")
     h = scene.particles.h
     if fields is None:
-        fields = interior_fields(scene, 2 * max(ms) * h + h, size)
+        clear = 2 * max(ms) * h + h if clearance is None else positive("clearance", clearance, "give a distance")
+        fields = interior_fields(scene, clear, size)
     if len(fields) <= 2:
         raise ValueError(f"{len(fields)} virtual fields: the system for (K, G) is exactly determined, "
                          "Phi = 0 at every m and the residual cannot choose; give at least three fields "
