@@ -7,8 +7,9 @@ and model spread (``vfm_noise``), and the Cramer-Rao bound of the PD model on th
 depend on E (the field scales as 1 / E and so does the noise), so E is varied only to show it.
 
     python benchmarks/vfm_noise.py [--geometry beam plate] [--nu 0.15 0.3 0.37 0.45] [--noise 0 0.01]
+                                   [--clearance MM --size MM] [--name vfm_noise]
 
-Writes runs/vfm_noise/metrics.json.
+``--clearance``/``--size`` go to ``estimate`` (default: its own). Writes runs/<name>/metrics.json.
 """
 from __future__ import annotations
 
@@ -55,7 +56,7 @@ def cramer_rao(geometry: str, truth, sigma: float, m: int = 3) -> dict:
     return {"K": float(sd[0] / truth["K"]), "G": float(sd[1] / truth["G"])}
 
 
-def run(geometry: str, nu: float, levels, seed: int) -> list:
+def run(geometry: str, nu: float, levels, seed: int, options: dict) -> list:
     scene, u, truth = case(geometry, nu)
     rows = []
     for level in levels:
@@ -66,7 +67,7 @@ def run(geometry: str, nu: float, levels, seed: int) -> list:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             try:
-                res = estimate(scene, y, sigma=sigma or None, ms=MS[geometry])
+                res = estimate(scene, y, sigma=sigma or None, ms=MS[geometry], **options)
             except ValueError as err:
                 res, row["error"] = None, str(err)
         row["wall_time_s"] = time.perf_counter() - start
@@ -95,17 +96,20 @@ def main():
     ap.add_argument("--nu", type=float, nargs="+", default=[0.15, 0.3, 0.37, 0.45])
     ap.add_argument("--noise", type=float, nargs="+", default=[0.0, 0.01])
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--clearance", type=float)
+    ap.add_argument("--size", type=float)
+    ap.add_argument("--name", default="vfm_noise")
     args = ap.parse_args()
     start, rows = time.perf_counter(), []
     for geometry in args.geometry:
         for nu in args.nu:
-            rows += run(geometry, nu, args.noise, args.seed)
+            rows += run(geometry, nu, args.noise, args.seed, {"clearance": args.clearance, "size": args.size})
     targets = {}
     for level in args.noise:
         sel = [r for r in rows if r["noise"] == level]
         worst = max((max(abs(e) for e in r["rel_error"].values()) if "rel_error" in r else np.inf) for r in sel)
         targets[f"vfm_KG_noise_{level:g}"] = {"value": worst, "target": TARGET, "passed": bool(worst <= TARGET)}
-    write_metrics("vfm_noise", {"wall_time_s": time.perf_counter() - start, "targets": targets,
+    write_metrics(args.name, {"wall_time_s": time.perf_counter() - start, "targets": targets,
                                 "settings": {**vars(args), "h": H, "fe_h": 0.5, "ms": MS}, "runs": rows})
 
 
