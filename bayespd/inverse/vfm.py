@@ -198,16 +198,7 @@ class VirtualWork:
         ``u`` (N, dim) with NaN where not measured; ``observed`` an optional boolean mask (N,)
         or (N, dim) of the measured entries (default: the finite ones).
         """
-        u = np.asarray(u.detach() if torch.is_tensor(u) else u, dtype=float)
-        n, dim = self.x.shape
-        if u.shape != (n, dim):
-            raise ValueError(f"u must be (N, dim) = {(n, dim)} on the scene's particles, got {u.shape}")
-        obs = np.isfinite(u) if observed is None else np.asarray(observed, dtype=bool)
-        if obs.shape == (n,):
-            obs = np.repeat(obs[:, None], dim, axis=1)
-        if obs.shape != (n, dim):
-            raise ValueError(f"observed must be a boolean mask of shape (N,) or (N, {dim})")
-        obs = obs & np.isfinite(u)
+        u, obs = self.measured(u, observed)
         prescribed = self.scene.constraints.prescribed.numpy()
         known = obs | self.fixed_dofs
         for k in range(self.n_fields):
@@ -223,6 +214,20 @@ class VirtualWork:
                     "missing data, or fill the data")
         self._check_prescribed(u, obs, prescribed, sigma)
         return torch.as_tensor(np.where(obs, u, np.where(self.fixed_dofs, prescribed, 0.0)))
+
+    def measured(self, u, observed=None):
+        """(u as an (N, dim) array, the (N, dim) mask of its measured entries): ``observed``
+        (N,) or (N, dim), default the finite entries; non-finite entries are never measured."""
+        u = np.asarray(u.detach() if torch.is_tensor(u) else u, dtype=float)
+        n, dim = self.x.shape
+        if u.shape != (n, dim):
+            raise ValueError(f"u must be (N, dim) = {(n, dim)} on the scene's particles, got {u.shape}")
+        obs = np.isfinite(u) if observed is None else np.asarray(observed, dtype=bool)
+        if obs.shape == (n,):
+            obs = np.repeat(obs[:, None], dim, axis=1)
+        if obs.shape != (n, dim):
+            raise ValueError(f"observed must be a boolean mask of shape (N,) or (N, {dim})")
+        return u, obs & np.isfinite(u)
 
     def _check_prescribed(self, u, obs, prescribed, sigma):
         """Warn where measured constrained dofs disagree with their prescribed values."""
@@ -274,14 +279,11 @@ class VirtualWork:
                              "include a field that moves the loaded particles")
 
 
-def identify(work: VirtualWork, u, *, observed=None, sigma: float | None = None) -> VFMResult:
-    """Closed-form PD-VFM: least squares over the virtual fields of W*_int(a) = -W*_ext,
-    i.e. the exact minimiser of Delorme 2018's eq 25 over (a_s, a_d), mapped to (K, G)
-    (``observed``, ``sigma``: see :meth:`VirtualWork.data`)."""
-    start = time.perf_counter()
+def system(work: VirtualWork, u, observed=None, sigma: float | None = None):
+    """(A, b) with W*_int = A a and b = -W*_ext (A a = b at the true a), after the checks of
+    the closed form: loads do work, rank 2, and a warning when exactly determined."""
     work._refuse_no_external_work()
     A = work.internal_matrix(work.data(u, observed, sigma)).numpy()
-    b = -work.external.numpy()
     scale = np.abs(A).max(axis=0)
     if work.n_fields < 2 or np.linalg.matrix_rank(A / scale, tol=1e-12) < 2:
         raise ValueError("need at least two independent virtual fields to identify (K, G): "
@@ -290,8 +292,24 @@ def identify(work: VirtualWork, u, *, observed=None, sigma: float | None = None)
         warnings.warn("two virtual fields for two unknowns: the system is exactly determined, so "
                       "Phi = 0 whatever the model error and the residual says nothing about the "
                       "fit; add fields (e.g. virtual_fields.interior_bumps, or "
-                      "vfm_defaults.estimate's defaults)", ExactlyDeterminedWarning, stacklevel=2)
-    a = np.linalg.lstsq(A / scale, b, rcond=None)[0] / scale
+                      "vfm_defaults.estimate's defaults)", ExactlyDeterminedWarning, stacklevel=3)
+    return A, -work.external.numpy()
+
+
+def least_squares_constants(A, b) -> np.ndarray:
+    """argmin_a |A a - b| with the columns scaled to unit max (a_s and a_d differ by decades)."""
+    scale = np.abs(A).max(axis=0)
+    return np.linalg.lstsq(A / scale, b, rcond=None)[0] / scale
+
+
+def identify(work: VirtualWork, u, *, observed=None, sigma: float | None = None) -> VFMResult:
+    """Closed-form PD-VFM: least squares over the virtual fields of W*_int(a) = -W*_ext,
+    i.e. the exact minimiser of Delorme 2018's eq 25 over (a_s, a_d), mapped to (K, G)
+    (``observed``, ``sigma``: see :meth:`VirtualWork.data`; for noisy data with a known
+    sigma, ``vfm_noise.weighted_identify`` is unbiased and gives standard errors)."""
+    start = time.perf_counter()
+    A, b = system(work, u, observed, sigma)
+    a = least_squares_constants(A, b)
     K, G = moduli_from_constants(work.material, a[0], a[1])
     r = A @ a - b
     return VFMResult({"K": K, "G": G}, (float(a[0]), float(a[1])), work.phi(r), r.tolist(), 0,

@@ -30,7 +30,8 @@ from scipy.spatial import cKDTree
 import bayespd as bp
 from bayespd.inverse import virtual_fields as vf
 from bayespd.inverse.vfm import VFMResult, VirtualWork, identify
-from bayespd.validate import count
+from bayespd.inverse.vfm_noise import MAX_SE, warn_if_noisy, weighted_identify
+from bayespd.validate import count, positive
 
 MS = (2, 3, 4, 5)
 RULES = ("linear", "smooth")
@@ -55,16 +56,17 @@ def load_field(scene):
     return u
 
 
-def interior_fields(scene, clearance: float):
+def interior_fields(scene, clearance: float, size: float | None = None):
     """[load field] + the bumps of a regular cell grid over the bounding box that keep
-    ``clearance`` from every free surface, hole, constrained and loaded particle."""
+    ``clearance`` from every free surface, hole, constrained and loaded particle; ``size``:
+    the cells' target width (default: the smaller extent of the box less the clearance)."""
     p = scene.particles
     x, h = p.x, p.h
     lo, hi = x.min(0) + clearance, x.max(0) - clearance
     if np.any(hi <= lo):
         raise ValueError(f"clearance {clearance:g} leaves no interior: the body is too thin for "
                          "interior fields at this horizon; pass fields= or smaller ms=")
-    size = (hi - lo).min()
+    size = (hi - lo).min() if size is None else positive("size", size, "give the bump cells' width")
     counts = np.maximum(np.round((hi - lo) / size).astype(int), 1)
     radius = (hi - lo) / counts / 2
     body = cKDTree(x)
@@ -92,32 +94,71 @@ def with_rule(scene, rule: str, delta_max: float):
     return bp.Scene(material, scene.dirichlet, scene.loads, scene.observation)
 
 
+def model_spread(candidates, best, dof: int) -> dict:
+    """The largest relative change of K and G from ``best`` over the candidates the noise cannot
+    tell from it: chi2 within 2 sd of a chi2 with ``dof`` degrees of freedom (2 sqrt(2 dof)) of
+    the least. A model-form uncertainty that the standard error does not contain."""
+    close = [c for c in candidates if c["score"] <= best["score"] + 2 * np.sqrt(2 * max(dof, 1))]
+    return {k: max(abs(c[k] / best[k] - 1) for c in close) for k in ("K", "G")}
+
+
 def estimate(scene, u, *, observed=None, sigma: float | None = None, fields=None, ms=MS,
-             rules=RULES) -> VFMResult:
+             rules=RULES, size: float | None = None, clearance: float | None = None,
+             max_se: float | None = MAX_SE) -> VFMResult:
     """K, G of the LPS ``scene`` from the measured field ``u`` (N, dim; NaN where not
     measured) by the closed-form PD-VFM at the (m, rule) of least residual (module
-    docstring); ``sigma``: the noise sd (``vfm.VirtualWork.data``). ``fields`` default to :func:`interior_fields` with clearance 2 max(ms) h + h.
+    docstring). ``fields`` default to :func:`interior_fields` with ``clearance`` (default
+    2 max(ms) h + h: no PD surface effect under the bumps) and bump cells of width ``size``.
+
+    ``sigma``: the noise sd of each measured displacement. Given, every candidate is solved
+    by ``vfm_noise.weighted_identify`` (noise-optimal combination of the fields, errors in
+    variables corrected), the residual criterion is its chi2 (Phi weighted by the noise
+    covariance), and the result's ``extra['se']`` holds the relative standard errors of K and
+    G, and ``extra['model_spread']`` (:func:`model_spread`) how far the candidates the noise
+    cannot tell apart differ; a :class:`vfm_noise.NoisyEstimateWarning` says when either
+    exceeds ``max_se``. Candidates whose system the noise swamps are skipped
+    (``extra['candidates']`` says why).
+
     The result's ``extra`` holds the chosen ``m``, ``rule``, ``delta`` and every candidate's
-    ``phi`` and estimates."""
+    ``phi`` (and ``chi2``, ``se``) and estimates."""
     ms = tuple(count("ms entry", m, 1, "m = delta / h is at least 1") for m in ms)
     if not ms or not rules or set(rules) - set(RULES):
         raise ValueError(f"ms must be a non-empty tuple of integers and rules a subset of {RULES}")
     h = scene.particles.h
     if fields is None:
-        fields = interior_fields(scene, 2 * max(ms) * h + h)
+        clear = 2 * max(ms) * h + h if clearance is None else positive("clearance", clearance, "give a distance")
+        fields = interior_fields(scene, clear, size)
     if len(fields) <= 2:
         raise ValueError(f"{len(fields)} virtual fields: the system for (K, G) is exactly determined, "
-                         "Phi = 0 at every m and the residual cannot choose; give at least three fields")
-    candidates = []
+                         "Phi = 0 at every m and the residual cannot choose; give at least three fields "
+                         "(or a smaller size= for more interior bumps)")
+    candidates, failures = [], []
     for rule in rules:
         sc = with_rule(scene, rule, max(ms) * h)
         for m in ms:
-            res = identify(VirtualWork(sc, fields, {"delta": m * h}), u, observed=observed, sigma=sigma)
-            candidates.append({"m": m, "rule": rule, "phi": res.phi, "K": res.params["K"],
-                               "G": res.params["G"], "result": res})
-    best = min(candidates, key=lambda c: c["phi"])
-    table = [{k: v for k, v in c.items() if k != "result"} for c in candidates]
+            work = VirtualWork(sc, fields, {"delta": m * h})
+            if sigma is None:
+                res = identify(work, u, observed=observed)
+                score = res.phi
+            else:
+                try:
+                    res = weighted_identify(work, u, sigma, observed=observed, max_se=None)
+                except ValueError as err:
+                    failures.append({"m": m, "rule": rule, "error": str(err)})
+                    continue
+                score = res.extra["chi2"]
+            candidates.append({"m": m, "rule": rule, "phi": res.phi, "score": score, "K": res.params["K"],
+                               "G": res.params["G"], "se": res.extra.get("se"), "result": res})
+    if not candidates:
+        raise ValueError(f"no candidate (m, rule) gave positive moduli: {failures[-1]['error']}")
+    best = min(candidates, key=lambda c: c["score"])
+    table = [{k: v for k, v in c.items() if k != "result"} for c in candidates] + failures
     extra = dict(best["result"].extra, m=best["m"], rule=best["rule"], delta=best["m"] * h,
                  candidates=table, fields=len(fields))
-    return dataclasses.replace(best["result"], method="closed_form, (m, rule) by least residual",
+    if sigma is not None:
+        extra["model_spread"] = model_spread(candidates, best, extra["dof"])
+        if max_se is not None:
+            warn_if_noisy(extra["se"], sigma, max_se, extra["model_spread"])
+    how = "least residual" if sigma is None else "least chi2, noise-weighted"
+    return dataclasses.replace(best["result"], method=f"{best['result'].method}, (m, rule) by {how}",
                                extra=extra)

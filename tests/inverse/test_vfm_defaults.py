@@ -61,7 +61,9 @@ def test_two_fields_are_flagged_and_cannot_choose():
 
 
 @pytest.mark.parametrize("kw,match", [({"ms": (0, 2)}, "ms entry must be an integer >= 1"),
-                                      ({"rules": ("cubic",)}, "rules a subset of")])
+                                      ({"rules": ("cubic",)}, "rules a subset of"),
+                                      ({"clearance": -1.0}, "clearance must be positive"),
+                                      ({"size": 0.0}, "size must be positive")])
 def test_bad_candidates_are_refused_by_name(kw, match):
     scene = plate()
     with pytest.raises(ValueError, match=match):
