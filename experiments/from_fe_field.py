@@ -92,23 +92,24 @@ def scene_of(field, geometry: str, delta: float, surface: bool = False):
 
 def calibrate(path, geometry: str, sigma: float, term=None, seed: int = 0):
     field, clock = read(path, geometry), [time.perf_counter()]
-    p, y = field.particles, field.y
-    u = np.full((p.n, 2), np.nan)
+    p, y, top, u = field.particles, field.y, float(np.nanmax(np.abs(field.y))), np.full((field.particles.n, 2), np.nan)
     u[field.observation.index[:, 0].numpy()[field.valid[:, 0]]] = y[field.valid[:, 0]]
     sc = scene_of(field, geometry, 5 * p.h)
     fields = None if geometry == "beam" else [load_field(sc)] + interior_bumps((6.5, 0), (15.5, 20), (1, 4), 3.5) \
         + interior_bumps((24.5, 0), (37.5, 20), (2, 4), 3.5)  # bumps clear of the hole, clamp and load by 3.5 mm
-    vfm = estimate(sc, u, sigma=sigma or None, fields=fields, ms=(2, 3, 4) if geometry == "beam" else (2, 3))
+    try:
+        vfm = estimate(sc, u, sigma=sigma or None, fields=fields, ms=(2, 3, 4) if geometry == "beam" else (2, 3)).params
+    except ValueError as error:  # no positive (K, G) from noisy data: start from E = 1e4, nu = 0.3
+        vfm = dict(zip(("K", "G"), map(float, bp.moduli_from_young(1e4, 0.3))), failed=str(error))
     clock.append(time.perf_counter())
-    start, delta, scale = dict(vfm.params), 3 * p.h, sigma or 0.01 * np.nanmax(np.abs(y))
-    out = {"vfm": vfm.params}
+    out, start, delta = {"vfm": vfm}, {k: vfm[k] for k in ("K", "G")}, 3 * p.h
+    scale, noise_scale = sigma or 0.01 * top, 0.05 * top
     for name, surface in (("tikhonov", False), ("tikhonov_corrected", True)):
         tik = tikhonov(scene_of(field, geometry, delta, surface), y, start, fixed={"delta": delta}, mask=field.mask,
                        sigma=scale, bounds={k: (v / 100, v * 100) for k, v in start.items()})
         out[name] = {**tik.params, "converged": tik.converged, "reason": tik.reason}
         clock.append(time.perf_counter())
     plain, nominal = scene_of(field, geometry, delta), {k: out["tikhonov"][k] for k in ("K", "G")}
-    noise_scale = 0.05 * float(np.nanmax(np.abs(y)))
     draws = [{**d, "delta": delta} for d in bp.prior_draws(elastic_plate(AtHorizon(plain, delta), nominal, noise_scale)
                                                             .priors, 16, seed, names=["K", "G"])]
     reduced = AtHorizon(bp.ReducedScene(plain, draws, 0.01 * max(sigma, 1e-3 * scale), delta_range=(delta * (1 - 1e-6), delta)), delta)
@@ -116,10 +117,7 @@ def calibrate(path, geometry: str, sigma: float, term=None, seed: int = 0):
                num_samples=1000, seed=seed, progress=False, predictive=False)
     out["laplace"] = {**young_intervals(tree), "rank": reduced.scene.rank,
                       "error_estimate_max": float(np.nanmax(tree["sample_stats"]["reduced_error_estimate"].values))}
-    clock.append(time.perf_counter())
-    for name, t in zip(METHODS, np.diff(clock)):
-        out[name]["wall_time_s"] = float(t)
-    return out
+    return {m: {**out[m], "wall_time_s": float(t)} for m, t in zip(METHODS, np.diff(clock + [time.perf_counter()]))}
 # ---- end of the user's code ----
 
 
@@ -144,7 +142,7 @@ def score(res: dict, truth: dict) -> None:
             continue
         E, nu = bp.young_from_moduli(r["K"], r["G"])
         r.update(E=float(E), nu=float(nu))
-        r["rel_error"] = {k: r[k] / truth[k] - 1 for k in truth}
+        r["rel_error"] = {k: float("inf") if "failed" in r else r[k] / truth[k] - 1 for k in truth}
 
 
 def main():
@@ -159,7 +157,7 @@ def main():
     rng = np.random.default_rng(args.seed)
     materials = [(float(rng.uniform(500, 100000)), float(rng.uniform(0.15, 0.45))) for _ in range(n)]
     geometries = ["plate"] if args.quick else ["beam", "plate"] if args.geometry == "both" else [args.geometry]
-    name = "from_fe_field" + ("_quick" if args.quick else "")
+    name = "from_fe_field" + ("_quick" if args.quick else "" if args.geometry == "both" else f"_{args.geometry}")
     out, rows, terms, start = run_dir(name), [], {}, time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         for geometry in geometries:
@@ -185,14 +183,15 @@ def main():
                     print(geometry, level, f"E={E:.0f} nu={nu:.3f}", {m: {k: f"{v:+.4f}" for k, v in res[m]["rel_error"].items()}
                                                                       for m in res},
                           "covers", res["laplace"]["covers"], {m: round(res[m]["wall_time_s"], 1) for m in res}, flush=True)
-    write_metrics(name, summary(rows, args, n, geometries, terms, time.perf_counter() - start))
+                    write_metrics(name, summary(rows, args, n, geometries, terms, time.perf_counter() - start))
     plot(rows, out / "error_vs_time.png")
 
 
 def summary(rows, args, n, geometries, terms, wall) -> dict:
     """metrics.json: the worst error per target (pass/fail), Laplace coverage and width, times."""
     worst = {k: max(abs(r[k.rsplit("_", 1)[0]]["rel_error"][k.rsplit("_", 1)[1]]) for r in rows) for k in TARGETS}
-    targets = {k: {"value": worst[k], "target": t, "passed": bool(worst[k] <= t)} for k, t in TARGETS.items()}
+    targets = {k: {"value": worst[k] if np.isfinite(worst[k]) else "failed on some case", "target": t,
+                   "passed": bool(worst[k] <= t)} for k, t in TARGETS.items()}
     for k in ("E", "nu"):
         covered = [r["laplace"]["covers"][k] for r in rows]
         targets[f"laplace_{k}_covers"] = {"value": float(np.mean(covered)), "count": f"{sum(covered)} of {len(rows)}",
@@ -215,7 +214,8 @@ def plot(rows, path):
     fig, axes = plt.subplots(1, len(METHODS), figsize=(4 * len(METHODS), 3.6), sharey=True)
     for ax, method in zip(axes, METHODS):
         for k, mark in zip(("E", "nu", "K", "G"), "os^v"):
-            pts = [(r[method]["wall_time_s"], abs(r[method]["rel_error"][k])) for r in rows if k in r[method]["rel_error"]]
+            pts = [(r[method]["wall_time_s"], abs(r[method]["rel_error"][k])) for r in rows
+                   if np.isfinite(r[method]["rel_error"].get(k, np.nan))]  # not absent, not a failed VFM
             if pts:
                 ax.scatter(*zip(*pts), marker=mark, label=k)
         ax.axhline(TARGETS.get(f"{method}_K", 0.02), color="k", ls="--", lw=0.8)
