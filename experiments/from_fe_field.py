@@ -16,7 +16,8 @@ the same path as for a DIC file):
   16 FE solves at h_FE = 1 mm, not the data's 0.5 mm mesh, over nu in [0.15, 0.45], once per
   geometry): posterior mean and 90 % intervals of E and nu.
 
-Writes runs/from_fe_field/ (metrics.json with per-target pass/fail, error_vs_time.png).
+Writes runs/from_fe_field[_beam|_plate|_quick]/ (metrics.json with per-target pass/fail, rewritten
+after every case; error_vs_time.png). A VFM that finds no positive (K, G) counts as failed.
 
     python experiments/from_fe_field.py [--materials N] [--geometry beam|plate|both] [--noise 0 0.01] [--quick]
 """
