@@ -1,0 +1,81 @@
+"""experiments/fe_bayes.py, the tutorial's own pieces: the horizon held fixed, the term against a
+known reference (inside and outside the measured body), E and nu intervals from K, G draws."""
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import xarray as xr
+
+import bayespd as bp
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
+from fe_bayes import AtHorizon, RatioFeature, fe_error_term, young_intervals  # noqa: E402
+
+POINTS = np.stack([np.linspace(0.0, 9.0, 10), np.zeros(10)], 1)
+T = torch.linspace(1.0, 2.0, 20, dtype=torch.float64).reshape(10, 2)
+
+
+class StandIn:
+    """A scene stand-in: predict = T (1 + G / K) / K (delta recorded), observed at POINTS."""
+
+    material = particles = None
+    observation = type("Obs", (), {"points": torch.as_tensor(POINTS)})()
+
+    def __init__(self):
+        self.seen = []
+
+    def predict(self, params):
+        self.seen.append(float(params["delta"]))
+        K, G = (torch.as_tensor(params[k], dtype=torch.float64) for k in ("K", "G"))
+        return T * (1 + G / K) / K
+
+    def diagnostics(self, draws):
+        return {"delta_seen": draws["delta"]}
+
+
+def test_horizon_is_held_in_predict_and_diagnostics():
+    inner = StandIn()
+    scene = AtHorizon(inner, 3.0)
+    scene.predict({"K": 2.0, "G": 1.0})
+    assert inner.seen == [3.0]
+    out = scene.diagnostics({"K": np.ones((2, 5)), "G": np.ones((2, 5))})
+    assert out["delta_seen"].shape == (2, 5) and np.all(out["delta_seen"] == 3.0)
+
+
+def test_ratio_feature_is_scale_free():
+    a, b = RatioFeature()({"K": 2.0, "G": 1.0}), RatioFeature()({"K": 2e4, "G": 1e4})
+    assert torch.allclose(a, b, rtol=0, atol=1e-15) and float(a) == pytest.approx(np.log(0.5), abs=1e-15)
+
+
+def test_term_of_a_scaled_reference_inside_the_body_only():
+    """reference = 1.1 model at the points inside (x < 5), no data outside: the relative error is
+    0.1 T / rms(T) inside and 0 outside at every nu (the model's shape does not change with nu),
+    so the smooth trend is that constant and the covariance vanishes."""
+    scene = AtHorizon(StandIn(), 3.0)
+    inside = lambda x: x[:, 0] < 5  # noqa: E731
+
+    def fe_at(E, nu, points):
+        K, G = bp.moduli_from_young(E, nu)
+        assert len(points) == 5
+        return 1.1 * scene.predict({"K": float(K), "G": float(G)})[:5].numpy()
+
+    term = fe_error_term(fe_at, scene, np.linspace(0.15, 0.45, 16), inside)
+    expected = 0.1 * T / T.square().mean().sqrt()
+    expected[5:] = 0.0
+    assert torch.allclose(term.mean, expected, rtol=0, atol=1e-12)
+    assert float(term.covariance().abs().max()) < 1e-20
+
+
+def test_young_intervals_of_known_draws():
+    """E uniform on a grid of 1001 values in [1000, 2000] at nu = 0.3: mean 1500, linear-
+    interpolated 5 % / 95 % quantiles 1050 / 1950, nu exactly 0.3."""
+    E = np.linspace(1000.0, 2000.0, 1001)
+    K, G = bp.moduli_from_young(E, 0.3)
+    tree = {"posterior": xr.Dataset({"K": (("chain", "draw"), np.asarray(K)[None]),
+                                     "G": (("chain", "draw"), np.asarray(G)[None])})}
+    out = young_intervals(tree)
+    assert out["E"]["mean"] == pytest.approx(1500.0, rel=1e-12)
+    assert out["E"]["interval_90"] == pytest.approx([1050.0, 1950.0], rel=1e-12)
+    assert out["nu"]["interval_90"] == pytest.approx([0.3, 0.3], rel=1e-12)
