@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import platform
 import sys
@@ -36,13 +37,16 @@ def write_atomic(path: Path, text: str) -> None:
 
 
 def plain(obj):
-    """numpy arrays, torch tensors and scalars inside dicts/lists as JSON lists and numbers."""
+    """numpy arrays, torch tensors and scalars inside dicts/lists as JSON lists and numbers;
+    NaN and inf as null (standard JSON has no such numbers)."""
     if isinstance(obj, dict):
         return {k: plain(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [plain(v) for v in obj]
     if isinstance(obj, (np.ndarray, np.generic, torch.Tensor)):
-        return np.asarray(obj).tolist()
+        return plain(np.asarray(obj).tolist())
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
     return obj
 
 
@@ -52,7 +56,7 @@ def write_metrics(name: str, metrics: dict) -> Path:
     metrics = dict(metrics, name=name, machine=f"{platform.machine()} {os.cpu_count()} cores",
                    date=datetime.now(timezone.utc).isoformat(timespec="seconds"))
     path = run_dir(name) / "metrics.json"
-    write_atomic(path, json.dumps(plain(metrics), indent=2, default=float))
+    write_atomic(path, json.dumps(plain(metrics), indent=2, default=float, allow_nan=False))
     targets = metrics.get("targets", {})
     for k, t in targets.items():
         print(f"  target {k}: {plain(t['value'])} (target {t['target']}) "
