@@ -113,12 +113,13 @@ def v_cycle(K: sp.csr_matrix, modes: np.ndarray) -> VCycle:
 def smoothed_aggregation(K: sp.csr_matrix, modes: np.ndarray, max_coarse: int = 300,
                          max_levels: int = 10, omega: float = 4.0 / 3.0):
     """([(A, P, R) per level], coarsest A): pyamg's smoothed aggregation with its defaults
-    (strength theta = 0, i.e. A's own pattern; standard aggregation; tentative prolongator T
+    (coarsening while a level has more than ``max_coarse`` nodes, a coarse node being one
+    aggregate's len(modes) dofs; strength theta = 0, i.e. A's own pattern; standard aggregation; tentative prolongator T
     fitted to ``modes``; one Jacobi step P = T - omega / rho(D^-1 A) D^-1 A T), the products
     in CSR (pyamg's 1 x 1-block BSR products took half its set-up) and rho by a seeded Lanczos
     on D^-1/2 A D^-1/2 (same spectrum, symmetric)."""
     A, B, levels = sp.csr_matrix(K), np.asarray(modes, dtype=np.float64), []
-    while A.shape[0] > max_coarse and len(levels) < max_levels - 1:
+    while A.shape[0] // (B.shape[1] if levels else 1) > max_coarse and len(levels) < max_levels - 1:
         aggregates, _ = pyamg.aggregation.standard_aggregation(A)
         T, B = pyamg.aggregation.fit_candidates(aggregates, B)
         T = T.tocsr()
