@@ -72,8 +72,11 @@ class VCycle:
 
     def __init__(self, levels, coarse: sp.csr_matrix):
         self.levels = levels
+        dense = coarse.toarray()
+        lost = np.flatnonzero(np.diag(dense) == 0)  # a mode an aggregate could not carry: decoupled
+        dense[lost, lost] = 1.0
         with threadpool_limits(1, user_api="blas"):
-            self.coarse = sla.cho_factor(coarse.toarray())
+            self.coarse = sla.cho_factor(dense)
 
     def __call__(self, r: np.ndarray) -> np.ndarray:
         B = np.ascontiguousarray((r[:, None] if r.ndim == 1 else r).T)  # columns as rows
@@ -113,17 +116,18 @@ def v_cycle(K: sp.csr_matrix, modes: np.ndarray) -> VCycle:
 def smoothed_aggregation(K: sp.csr_matrix, modes: np.ndarray, max_coarse: int = 300,
                          max_levels: int = 10, omega: float = 4.0 / 3.0):
     """([(A, P, R) per level], coarsest A): pyamg's smoothed aggregation with its defaults
-    (coarsening while a level has more than ``max_coarse`` nodes, a coarse node being one
-    aggregate's len(modes) dofs; strength theta = 0, i.e. A's own pattern; standard aggregation; tentative prolongator T
+    (coarsening while a level has more than ``max_coarse`` nodes, a coarse node being the
+    len(modes) dofs of one aggregate, aggregated whole; strength theta = 0, i.e. A's own pattern; standard aggregation; tentative prolongator T
     fitted to ``modes``; one Jacobi step P = T - omega / rho(D^-1 A) D^-1 A T), the products
     in CSR (pyamg's 1 x 1-block BSR products took half its set-up) and rho by a seeded Lanczos
     on D^-1/2 A D^-1/2 (same spectrum, symmetric)."""
     A, B, levels = sp.csr_matrix(K), np.asarray(modes, dtype=np.float64), []
     while A.shape[0] // (B.shape[1] if levels else 1) > max_coarse and len(levels) < max_levels - 1:
-        aggregates, _ = pyamg.aggregation.standard_aggregation(A)
+        aggregates, _ = pyamg.aggregation.standard_aggregation(_node_graph(A, B.shape[1] if levels else 1))
         T, B = pyamg.aggregation.fit_candidates(aggregates, B)
         T = T.tocsr()
-        d_inv = 1.0 / A.diagonal()
+        d = A.diagonal()
+        d_inv = np.divide(1.0, d, out=np.zeros_like(d), where=d != 0)  # a dof no bond reaches: T's row is 0
         AT = A @ T
         AT = sp.diags(d_inv * (omega / _jacobi_radius(A, d_inv))) @ AT
         P = (T - AT).tocsr()
@@ -132,6 +136,16 @@ def smoothed_aggregation(K: sp.csr_matrix, modes: np.ndarray, max_coarse: int = 
         levels.append((A, P, R))
         A = (R @ (A @ P)).tocsr()
     return levels, A
+
+
+def _node_graph(A: sp.csr_matrix, k: int) -> sp.csr_matrix:
+    """The pattern of A's k x k blocks (a coarse level's nodes: one aggregate's k dofs), so
+    that an aggregate holds whole nodes and keeps all k modes (pyamg's BSR levels)."""
+    if k == 1:
+        return A
+    blocks = A.tobsr(blocksize=(k, k))
+    return sp.csr_matrix((np.ones(len(blocks.indices)), blocks.indices, blocks.indptr),
+                         shape=(A.shape[0] // k, A.shape[1] // k))
 
 
 def _jacobi_radius(A: sp.csr_matrix, d_inv: np.ndarray, steps: int = 15) -> float:
