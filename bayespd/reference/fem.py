@@ -20,7 +20,7 @@ import torch
 
 from bayespd.linalg.amg import rigid_body_modes, v_cycle
 from bayespd.linalg.config import choose_solver
-from bayespd.linalg.sparse import Pattern, PCGFactor, default_backend
+from bayespd.linalg.sparse import Pattern, PCGFactor, default_backend, splu_factor
 
 
 def require_skfem():
@@ -175,12 +175,14 @@ def spd_solve(A, b: np.ndarray, modes: np.ndarray | None = None) -> np.ndarray:
     cantilever's Q2 mesh grew past 4 GB (AMG: 241 iterations, 28 s, 1.9 GB peak). 2D systems
     stay direct: SuperLU factorises the beam's 200k-dof Q2 mesh in seconds, where its graded
     cells cost AMG 386 iterations (21 s; benchmarks/README.md, issue 31)."""
-    if modes is not None and modes.shape[1] == 6 and choose_solver(A.shape[0], 3, default_backend()) == "amg":
-        A = sp.csr_matrix(A)
-        return PCGFactor(A.__matmul__, v_cycle(A, modes), A.shape[0], rtol=1e-10).solve(b)
-    A = A.tocsc()
+    A = sp.csr_matrix(A)  # no copy of solve_mesh's CSR: SuperLU's fill alone sets the peak
     A.sum_duplicates()
     A.sort_indices()
+    if modes is not None and modes.shape[1] == 6 and choose_solver(A.shape[0], 3, default_backend()) == "amg":
+        return PCGFactor(A.__matmul__, v_cycle(A, modes), A.shape[0], rtol=1e-10).solve(b)
+    if default_backend() == "splu":  # A is symmetric: its CSR arrays are its CSC arrays
+        return splu_factor(sp.csc_matrix((A.data, A.indices, A.indptr), shape=A.shape)).solve(b)
+    A = A.tocsc()
     cols = np.repeat(np.arange(A.shape[1]), np.diff(A.indptr))
     pattern = Pattern(A.indices.astype(np.int64), cols.astype(np.int64), A.shape[0])
     factor = pattern.factorize(torch.as_tensor(A.data))
