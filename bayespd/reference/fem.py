@@ -210,8 +210,9 @@ def isotropic_stiffness(E: float, nu: float, dim: int, plane: str | None = "stre
 
 
 CHUNK_ENTRIES = 1_000_000
-"""Element-matrix entries assembled at a time (cells x local dofs^2): 3D Q2 quadrature data
-for 2,000 cells (648 MB) set the peak memory of the cantilever's reference solve."""
+"""Element-matrix entries assembled at a time (cells x local dofs^2): a 3D Q2 cell has 81^2,
+and the quadrature data of 2,000 of them set the peak memory of the cantilever's reference
+solve (benchmarks/README.md, issue 31)."""
 
 
 def _chunks(n: int, size: int):
