@@ -1,6 +1,7 @@
 """Algebraic-multigrid preconditioner for the matrix-free PCG of a Gram-sum stiffness.
 
-Smoothed aggregation (pyamg; Vanek, Mandel & Brezina 1996) on the *pair operator*
+Smoothed aggregation (Vanek, Mandel & Brezina 1996; pyamg's defaults and its aggregation and
+candidate fit, the rest in ``smoothed_aggregation``) on the *pair operator*
 K_b = sum_t A_t^T diag(max(w_t, 0)) A_t over the rows of A_t that touch two particles (the
 bonds): the whole stiffness of a bond-based law, the bond part of LPS (its dilatation rows are
 left out: they couple whole families, and K - K_b is positive semi-definite). The near-null
