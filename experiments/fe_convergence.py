@@ -12,6 +12,7 @@ runs/fe_convergence/metrics.json and convergence.png.
 from __future__ import annotations
 
 import argparse
+import ctypes
 import time
 
 import numpy as np
@@ -125,7 +126,20 @@ def figure(out, series):
     plt.close(fig)
 
 
+def return_freed_arrays_to_the_os(threshold: int = 1 << 20) -> None:
+    """glibc only (elsewhere nothing): allocate every block of ``threshold`` bytes or more by
+    mmap, so that a freed array goes back to the OS. By default glibc raises that threshold
+    to 32 MB after the first large free, and the arrays of one FE or PD phase below it stay
+    in the heap, fragmented, under the next phase (benchmarks/README.md, issue 31)."""
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:
+        return
+    libc.mallopt(-3, threshold)  # M_MMAP_THRESHOLD; a set value also ends the dynamic raise
+
+
 def main(quick: bool):
+    return_freed_arrays_to_the_os()
     out = run_dir("fe_convergence")
     start = time.perf_counter()
     plan = QUICK if quick else FULL

@@ -190,7 +190,7 @@ class Pattern:
                 raise ValueError("backend 'cholmod' needs scikit-sparse: install the 'fast' extra")
             return _cholmod_factor(self, A, ordering or current_settings().cholmod_ordering)
         if backend == "splu":
-            return _splu_factor(A)
+            return splu_factor(A)
         raise ValueError(f"unknown backend {backend!r}: use 'cholmod' or 'splu'")
 
 
@@ -286,7 +286,9 @@ class PCGFactor(Factor):
             "(method='direct'), a stronger preconditioner, or raise maxiter")
 
 
-def _splu_factor(A) -> Factor:
+def splu_factor(A) -> Factor:
+    """SuperLU's factor of an SPD csc_matrix A with diagonal pivots (symmetric mode), refusing
+    a matrix that is not positive definite."""
     with warnings.catch_warnings():
         warnings.simplefilter("error", sp.SparseEfficiencyWarning)
         try:

@@ -20,7 +20,7 @@ import torch
 
 from bayespd.linalg.amg import rigid_body_modes, v_cycle
 from bayespd.linalg.config import choose_solver
-from bayespd.linalg.sparse import Pattern, PCGFactor, default_backend
+from bayespd.linalg.sparse import Pattern, PCGFactor, default_backend, splu_factor
 
 
 def require_skfem():
@@ -175,12 +175,14 @@ def spd_solve(A, b: np.ndarray, modes: np.ndarray | None = None) -> np.ndarray:
     cantilever's Q2 mesh grew past 4 GB (AMG: 241 iterations, 28 s, 1.9 GB peak). 2D systems
     stay direct: SuperLU factorises the beam's 200k-dof Q2 mesh in seconds, where its graded
     cells cost AMG 386 iterations (21 s; benchmarks/README.md, issue 31)."""
-    if modes is not None and modes.shape[1] == 6 and choose_solver(A.shape[0], 3, default_backend()) == "amg":
-        A = sp.csr_matrix(A)
-        return PCGFactor(A.__matmul__, v_cycle(A, modes), A.shape[0], rtol=1e-10).solve(b)
-    A = A.tocsc()
+    A = sp.csr_matrix(A)  # no copy of solve_mesh's CSR: SuperLU's fill alone sets the peak
     A.sum_duplicates()
     A.sort_indices()
+    if modes is not None and modes.shape[1] == 6 and choose_solver(A.shape[0], 3, default_backend()) == "amg":
+        return PCGFactor(A.__matmul__, v_cycle(A, modes), A.shape[0], rtol=1e-10).solve(b)
+    if default_backend() == "splu":  # A is symmetric: its CSR arrays are its CSC arrays
+        return splu_factor(sp.csc_matrix((A.data, A.indices, A.indptr), shape=A.shape)).solve(b)
+    A = A.tocsc()
     cols = np.repeat(np.arange(A.shape[1]), np.diff(A.indptr))
     pattern = Pattern(A.indices.astype(np.int64), cols.astype(np.int64), A.shape[0])
     factor = pattern.factorize(torch.as_tensor(A.data))
@@ -207,6 +209,12 @@ def isotropic_stiffness(E: float, nu: float, dim: int, plane: str | None = "stre
     return C
 
 
+CHUNK_ENTRIES = 1_000_000
+"""Element-matrix entries assembled at a time (cells x local dofs^2): a 3D Q2 cell has 81^2,
+and the quadrature data of 2,000 of them set the peak memory of the cantilever's reference
+solve (benchmarks/README.md, issue 31)."""
+
+
 def _chunks(n: int, size: int):
     return [np.arange(k, min(n, k + size)) for k in range(0, n, size)]
 
@@ -214,7 +222,7 @@ def _chunks(n: int, size: int):
 def solve_box(extent, h: float, E: float, nu: float, supports: list[Support],
               loads: list[BodyLoad], order: int = 2, plane: str | None = "stress",
               thickness: float = 1.0, grading: int = 0, stiffness=None,
-              chunk: int = 2000) -> FESolution:
+              chunk: int | None = None) -> FESolution:
     """Linear elasticity on [0, extent] with Q``order`` elements of size ``h``.
 
     2D (plane stress/strain, thickness ``thickness``) when ``extent`` has two entries, 3D with
@@ -224,7 +232,8 @@ def solve_box(extent, h: float, E: float, nu: float, supports: list[Support],
     region. ``grading`` levels of geometric refinement go toward the support faces, where the
     corners of a fixed region are stress singularities (r^lambda, lambda < 1) that otherwise
     pollute the whole field and slow convergence to O(h^(2 lambda)). Assembly runs over
-    ``chunk`` elements at a time to bound the memory of the quadrature data.
+    ``chunk`` elements at a time (None: ``CHUNK_ENTRIES`` element-matrix entries) to bound the
+    memory of the quadrature data.
     """
     skfem = require_skfem()
     start = time.perf_counter()
@@ -242,7 +251,7 @@ def solve_box(extent, h: float, E: float, nu: float, supports: list[Support],
 
 def solve_mesh(mesh, E: float, nu: float, supports: list[Support], loads: list[BodyLoad], *,
                order: int = 2, plane: str | None = "stress", thickness: float = 1.0, stiffness=None,
-               chunk: int = 2000, axes=None, h: float | None = None, start: float | None = None) -> FESolution:
+               chunk: int | None = None, axes=None, h: float | None = None, start: float | None = None) -> FESolution:
     """Linear elasticity with Q``order`` elements on a quad (2D) or hex (3D) ``mesh`` (see
     :func:`solve_box` for the supports, loads and ``stiffness``; the support and load regions
     must be unions of cells). ``axes``: the mesh's tensor-product axes when it has them (fast
@@ -264,7 +273,9 @@ def solve_mesh(mesh, E: float, nu: float, supports: list[Support], loads: list[B
     else:
         elem = skfem.ElementHex1() if order == 1 else skfem.ElementHex2()
     elem = skfem.ElementVector(elem)
-    basis = skfem.Basis(mesh, elem, intorder=1)  # dofs, dof locations and probes only
+    X, W = skfem.quadrature.get_quadrature(elem.refdom, 1)
+    # dofs, dof locations and probes only: one quadrature point, the least data kept per cell
+    basis = skfem.Basis(mesh, elem, quadrature=(X[:, :1], W[:1]))
     entries = [(i, j, C[i, j]) for i in range(len(C)) for j in range(len(C)) if C[i, j] != 0]
 
     def voigt(eps):
@@ -284,12 +295,6 @@ def solve_mesh(mesh, E: float, nu: float, supports: list[Support], loads: list[B
             f = f + sum(inside * density[c] * v[c] for c in range(dim))
         return f
 
-    A, b = 0, 0
-    for cells in _chunks(mesh.t.shape[1], chunk):
-        part = skfem.Basis(mesh, elem, intorder=2 * order, elements=cells, dofs=basis.dofs,
-                           disable_doflocs=True)
-        A = A + energy.assemble(part)
-        b = b + body.assemble(part)
     comps = basis.split_indices()
     fixed = []
     for s in supports:
@@ -304,11 +309,19 @@ def solve_mesh(mesh, E: float, nu: float, supports: list[Support], loads: list[B
     D = np.unique(np.concatenate(fixed)) if fixed else np.array([], dtype=np.int64)
     if len(D) == 0:
         raise ValueError("no dof lies in the support regions: the problem is singular")
-    u = np.zeros(basis.N)
     free = np.setdiff1d(np.arange(basis.N), D)
+    chunk = chunk or max(1, CHUNK_ENTRIES // basis.Nbfun**2)
+    A, b = 0, 0
+    for cells in _chunks(mesh.t.shape[1], chunk):  # each part restricted to the free dofs at once
+        part = skfem.Basis(mesh, elem, intorder=2 * order, elements=cells, dofs=basis.dofs,
+                           disable_doflocs=True)
+        A = A + energy.assemble(part)[free][:, free]
+        b = b + body.assemble(part)[free]
+        del part
+    u = np.zeros(basis.N)
     component = np.empty(basis.N, dtype=np.int64)
     for c, idx in enumerate(comps):
         component[idx] = c
     modes = rigid_body_modes(basis.doflocs.T, component)[free]
-    u[free] = spd_solve(A[free][:, free], b[free], modes)
+    u[free] = spd_solve(A, b, modes)
     return FESolution(basis, axes, u, h, order, time.perf_counter() - start)
