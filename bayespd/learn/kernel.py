@@ -6,7 +6,9 @@ strain of unit thickness, so its in-plane moduli are the sheet's 2D ones: kappa 
 lambda + mu with K = lambda + 2 mu / 3, G = mu (``lps_params``). Only the shape of D matters (LPS
 absorbs its scale into m), so the fit normalises it (``normalised``).
 
-Unknowns: z = (log(lambda + mu), log mu, D): the first two constraints of eq 4.4 (lambda + mu > 0,
+Unknowns: z = (log(lambda + mu), log mu, d) with D = d, or D = exp(d) (``positive=True``: a
+non-negative kernel, which phase 2 needs: the damaged LPS recomputes m from the intact bonds, and
+with a sign-changing kernel that sum can cancel to ~0 next to a crack). The first two constraints of eq 4.4 (lambda + mu > 0,
 mu > 0) hold for every z, lambda may be negative. The eigenvalue constraints of eq 4.4 use
 matrices Gamma, Phi of the paper's ref. [47], which the text does not give; their purpose is that
 the discrete operator be invertible (apart from rigid motions) with a margin zeta. On a periodic
@@ -107,32 +109,37 @@ def relative_errors(sheet, params, forces, u_data, spectral: bool = True) -> tor
     return torch.linalg.vector_norm(u - data, dim=(1, 2)) / torch.linalg.vector_norm(data, dim=(1, 2))
 
 
-def learn_kernel(sheet, forces, u_data, delta: float, degree: int | None = None, start=None,
+def learn_kernel(sheet, forces, u_data, delta: float, start=None, positive_kernel: bool = False,
                  zeta: float = ZETA, maxiter: int = 200, ftol: float = 1e-10) -> KernelFit:
     """Fit (lambda, mu, D) at horizon ``delta`` to displacements ``u_data`` (loads, N, 2) under
     nodal ``forces``, with the solvability penalty, from D = const and ``start`` = (lambda, mu)
     (default: both |f| / (V k_min^2 |u|), the order of a long-wave modulus of the data)."""
     influence = sheet.material.influence
-    P = influence.degree if degree is None else degree
+    P = influence.degree
     positive("delta", delta, "pass the horizon")
     forces, u_data = torch.as_tensor(forces), torch.as_tensor(u_data)
     if start is None:
         scale = float(forces.norm() / u_data.norm()) / float(sheet.material.particles.volume[0]) * (2 * np.pi / sheet.box.min()) ** -2
         start = (0.5 * scale, 0.5 * scale)
     lam0, mu0 = start
-    z0 = np.concatenate([[np.log(lam0 + mu0), np.log(mu0)], np.ones(P + 1) / np.sqrt(P + 1)])
+    z0 = np.concatenate([[np.log(lam0 + mu0), np.log(mu0)], np.zeros(P + 1) if positive_kernel else np.ones(P + 1)])
     history, t0 = [], time.perf_counter()
 
     def unpack(z):
         kappa, mu = torch.exp(z[0]), torch.exp(z[1])
-        return lps_params(kappa - mu, mu, z[2:], delta)
+        return lps_params(kappa - mu, mu, coefficients(z), delta)
+
+    def coefficients(z):
+        return torch.exp(z[2:]) if positive_kernel else z[2:]
 
     def objective(znp):
         z = torch.tensor(znp, requires_grad=True)
         try:
             p = unpack(z)
             J = (relative_errors(sheet, p, forces, u_data) ** 2).mean()
-            J = J + RHO * torch.relu(zeta - coercivity(sheet, p)) ** 2 + 1e-3 * torch.log((z[2:] ** 2).sum()) ** 2
+            J = J + RHO * torch.relu(zeta - coercivity(sheet, p)) ** 2
+            # D's scale is free (LPS absorbs it into m): pin it without touching the shape
+            J = J + 1e-3 * (z[2:].mean() if positive_kernel else torch.log((z[2:] ** 2).sum())) ** 2
         except ValueError:  # m <= 0 somewhere: outside the admissible set; the line search steps back
             return 1e6, np.zeros_like(znp)
         J.backward()
@@ -146,5 +153,5 @@ def learn_kernel(sheet, forces, u_data, delta: float, degree: int | None = None,
     c = check_solvable(sheet, p, zeta)
     misfit = float((relative_errors(sheet, p, forces, u_data) ** 2).mean())
     kappa, mu = float(torch.exp(z[0])), float(torch.exp(z[1]))
-    return KernelFit(kappa - mu, mu, normalised(influence, z[2:], delta).numpy(), float(delta), c, misfit,
+    return KernelFit(kappa - mu, mu, normalised(influence, coefficients(z), delta).numpy(), float(delta), c, misfit,
                      int(res.nit), time.perf_counter() - t0, bool(res.success), str(res.message), history)
