@@ -137,7 +137,9 @@ def learn_kernel(sheet, forces, u_data, delta: float, start=None, positive_kerne
         try:
             p = unpack(z)
             J = (relative_errors(sheet, p, forces, u_data) ** 2).mean()
-            J = J + RHO * torch.relu(zeta - coercivity(sheet, p)) ** 2
+            c = coercivity(sheet, p)
+            if float(c.detach()) < zeta:  # eigvalsh's gradient is not finite at repeated eigenvalues
+                J = J + RHO * (zeta - c) ** 2
             # D's scale is free (LPS absorbs it into m): pin it without touching the shape
             J = J + 1e-3 * (z[2:].mean() if positive_kernel else torch.log((z[2:] ** 2).sum())) ** 2
         except ValueError:  # m <= 0 somewhere: outside the admissible set; the line search steps back
