@@ -28,7 +28,7 @@ from bayespd.learn.kernel import learn_kernel, lps_params, relative_errors
 from bayespd.learn.moduli import long_wave_moduli
 from bayespd.learn.periodic import PeriodicSheet, periodic_bonds, periodic_grid
 from bayespd.materials.lps import LPS
-from models.md_kernel import md_kernel
+from bayespd.models.md_kernel import md_kernel
 
 NAME = "md_learning"
 DATA = run_dir("md_graphene_data") / "records"
