@@ -1,9 +1,10 @@
 """The Bayesian version of paper 004's kernel learning (phase 1, eqs 4.2-4.7): a posterior over the
-2D moduli, the horizon and the shape of a non-negative Bernstein kernel from periodic sheets.
+2D moduli, the horizon and the shape of a Bernstein kernel from periodic sheets.
 
     lambda + mu ~ LogNormal(log nominal, 1),   mu ~ LogNormal(log nominal, 1)
     delta       ~ ScaledBeta(1.2 h, delta_max, 2, 2)
-    d_k         ~ Normal(0, 1),  D = exp(d)    (P + 1 log-coefficients; only the shape matters)
+    d_k         ~ Normal(0, 1),  D = exp(d)    (P + 1 log-coefficients; only the shape matters;
+                                               or D = d, a sign-changing kernel)
     sigma       ~ HalfNormal(0.1)              (relative noise)
     y[m]        ~ Normal(u_m(lambda, mu, D, delta), sigma * scale_m)   zero-mean displacements
 
@@ -22,14 +23,16 @@ import torch
 
 from bayespd.infer import ScaledBeta
 from bayespd.learn.kernel import RHO, ZETA, coercivity, lps_params
+from bayespd.materials.checks import ParameterRangeError
 from bayespd.models.observations import check_shape
 from bayespd.models.priors import positive
 
 
-def md_kernel(sheet, forces, scales, nominal: float):
+def md_kernel(sheet, forces, scales, nominal: float, positive_kernel: bool = True):
     """A Pyro model ``model(y=None)`` for zero-mean displacements y (loads, N, 2) of ``sheet`` under
     nodal ``forces`` (loads, N, 2); ``scales`` (loads,): each load's data RMS; ``nominal``: the
-    prior median of lambda + mu and mu. Sites ``lam_plus_mu``, ``mu``, ``delta``, ``d``, ``sigma``."""
+    prior median of lambda + mu and mu; ``positive_kernel=False``: D = d (eq 4.2's D_k in R, the
+    prior then holding D's free scale near 1). Sites ``lam_plus_mu``, ``mu``, ``delta``, ``d``, ``sigma``."""
     forces, scales = torch.as_tensor(forces), torch.as_tensor(scales)
     shape = tuple(forces.shape)
     if scales.shape != shape[:1] or not bool(torch.all(scales > 0)):
@@ -46,8 +49,13 @@ def md_kernel(sheet, forces, scales, nominal: float):
         delta = pyro.sample("delta", ScaledBeta(1.2 * h, delta_max, 2.0, 2.0))
         d = pyro.sample("d", dist.Normal(torch.zeros(P + 1), 1.0).to_event(1))
         sigma = pyro.sample("sigma", dist.HalfNormal(0.1))
-        params = lps_params(kappa - mu, mu, torch.exp(d), delta)
-        c = coercivity(sheet, params)
+        params = lps_params(kappa - mu, mu, torch.exp(d) if positive_kernel else d, delta)
+        try:
+            c = coercivity(sheet, params)
+        except ParameterRangeError:
+            raise
+        except ValueError as error:  # m <= 0 (a kernel negative on average): a rejected trial point
+            raise ParameterRangeError(str(error)) from error
         if float(c.detach()) < ZETA:  # (eigvalsh's derivatives are not finite at repeated eigenvalues: only here)
             pyro.factor("solvability", -RHO * forces[..., 0].numel() * (ZETA - c) ** 2)
         u = sheet.spectral_solve(params, forces)
