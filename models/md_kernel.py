@@ -10,8 +10,8 @@
 
 u_m is ``PeriodicSheet.spectral_solve`` under the nodal forces of load m and scale_m the RMS of
 load m's data, so sigma is a relative error as in ``bayespd.learn.kernel``. The solvability
-constraint (eq 4.4) enters as the factor -RHO N (zeta - coercivity)^2 where coercivity < zeta (N:
-the nodes), the misfit's penalty in likelihood units.
+constraint (eq 4.4) enters as the factor -N ``solvability_penalty`` (N: the nodes), the misfit's
+penalty in likelihood units; a kernel with m <= 0 is a rejected trial point.
 """
 from __future__ import annotations
 
@@ -22,8 +22,7 @@ import pyro.distributions as dist
 import torch
 
 from bayespd.infer import ScaledBeta
-from bayespd.learn.kernel import RHO, ZETA, coercivity, lps_params
-from bayespd.materials.checks import ParameterRangeError
+from bayespd import lps_params, solvability_penalty
 from bayespd.models.observations import check_shape
 from bayespd.models.priors import positive
 
@@ -50,14 +49,7 @@ def md_kernel(sheet, forces, scales, nominal: float, positive_kernel: bool = Tru
         d = pyro.sample("d", dist.Normal(torch.zeros(P + 1), 1.0).to_event(1))
         sigma = pyro.sample("sigma", dist.HalfNormal(0.1))
         params = lps_params(kappa - mu, mu, torch.exp(d) if positive_kernel else d, delta)
-        try:
-            c = coercivity(sheet, params)
-        except ParameterRangeError:
-            raise
-        except ValueError as error:  # m <= 0 (a kernel negative on average): a rejected trial point
-            raise ParameterRangeError(str(error)) from error
-        if float(c.detach()) < ZETA:  # (eigvalsh's derivatives are not finite at repeated eigenvalues: only here)
-            pyro.factor("solvability", -RHO * forces[..., 0].numel() * (ZETA - c) ** 2)
+        pyro.factor("solvability", -forces[..., 0].numel() * solvability_penalty(sheet, params))
         u = sheet.spectral_solve(params, forces)
         pyro.sample("y", dist.Normal(u, sigma * scales[:, None, None]).to_event(3), obs=y)
 

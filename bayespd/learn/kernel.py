@@ -36,14 +36,16 @@ import numpy as np
 import scipy.optimize
 import torch
 
+from bayespd.materials.checks import ParameterRangeError
 from bayespd.validate import positive
 
 ZETA = 0.05   # the solvability margin of eq 4.4 (on the normalised coercivity above)
 RHO = 10.0    # weight of the constraint penalty against the relative misfit
 
 
-class UnsolvableKernel(ValueError):
-    """A kernel whose discrete LPS operator violates the solvability constraint (eq 4.4)."""
+class UnsolvableKernel(ParameterRangeError):
+    """A kernel whose discrete LPS operator violates the solvability constraint (eq 4.4) or has
+    m <= 0 (to the samplers and optimisers: a rejected trial point)."""
 
 
 def lps_params(lam, mu, D, delta) -> dict:
@@ -66,6 +68,18 @@ def coercivity(sheet, params) -> torch.Tensor:
     volume = float(sheet.material.particles.volume[0])
     scale = params["G"] * volume * torch.minimum(k2, torch.as_tensor(params["delta"]) ** -2)
     return (low / scale).min()
+
+
+def solvability_penalty(sheet, params, zeta: float = ZETA) -> torch.Tensor:
+    """RHO (zeta - coercivity)^2 where the coercivity is below zeta, else 0 (then no derivative
+    of eigvalsh is taken: it is not finite at repeated eigenvalues); ``UnsolvableKernel`` for m <= 0."""
+    try:
+        c = coercivity(sheet, params)
+    except ParameterRangeError:
+        raise
+    except ValueError as error:  # the material refuses a non-positive weighted volume m
+        raise UnsolvableKernel(f"this kernel is not admissible: {error}") from error
+    return RHO * (zeta - c) ** 2 if float(c.detach()) < zeta else torch.zeros((), dtype=c.dtype)
 
 
 def check_solvable(sheet, params, zeta: float = ZETA) -> float:
@@ -136,10 +150,7 @@ def learn_kernel(sheet, forces, u_data, delta: float, start=None, positive_kerne
         z = torch.tensor(znp, requires_grad=True)
         try:
             p = unpack(z)
-            J = (relative_errors(sheet, p, forces, u_data) ** 2).mean()
-            c = coercivity(sheet, p)
-            if float(c.detach()) < zeta:  # eigvalsh's gradient is not finite at repeated eigenvalues
-                J = J + RHO * (zeta - c) ** 2
+            J = (relative_errors(sheet, p, forces, u_data) ** 2).mean() + solvability_penalty(sheet, p, zeta)
             # D's scale is free (LPS absorbs it into m): pin it without touching the shape
             J = J + 1e-3 * (z[2:].mean() if positive_kernel else torch.log((z[2:] ** 2).sum())) ** 2
         except ValueError:  # m <= 0 somewhere: outside the admissible set; the line search steps back
