@@ -97,7 +97,7 @@ def phase_one(quick: bool, out):
             "learned_moduli_eV_per_A2": learned, "moduli_rel_error": rel}, data
 
 
-def phase_two(best, out):
+def phase_two(best):
     """s0 (eq 4.8) from the first half of the WENO-coarse-grained fracture record (h = 5 A)."""
     z = np.load(run_dir("md_graphene_data") / "coarse_h5_weno.npz")
     particles = from_points(z["nodes"], np.full(len(z["nodes"]), 25.0), h=5.0)
@@ -168,7 +168,7 @@ def main():
     out = run_dir(NAME + ("_quick" if args.quick else ""))
     one, data = phase_one(args.quick, out)
     t = time.perf_counter()
-    two = phase_two(one["non_negative_at_best"], out)
+    two = phase_two(one["non_negative_at_best"])
     two["wall_time_s_total"] = time.perf_counter() - t
     print(two, flush=True)
     posterior = bayes(one["best"], data, args.quick)
