@@ -62,6 +62,12 @@ class Gaussian(Influence):
         return torch.as_tensor(delta) ** (k + 1) * shape
 
 
+def _powers(x: torch.Tensor, degree: int) -> torch.Tensor:
+    """[x^0, ..., x^degree] along the last axis by products: finite derivatives of every order at
+    x = 0, where x**k with a tensor exponent k = 0 has 0 * inf = NaN ones."""
+    return torch.cumprod(torch.cat([torch.ones_like(x), x.expand(*x.shape[:-1], degree)], -1), -1)
+
+
 class Bernstein(Influence):
     """omega = sum_k D_k r^-alpha B_{k,P}(r / delta) (You 2023 eqs 4.2-4.3) with learnable
     coefficients ``params["D"]`` (P + 1 values). Only the shape of omega matters: the
@@ -91,8 +97,10 @@ class Bernstein(Influence):
 
     def __call__(self, r, delta, params):
         D = self._coefficients(params)
-        rho = (r / delta)[:, None]
-        basis = self._binom * rho**self._k * (1 - rho) ** (self.degree - self._k)
+        # bonds up to delta + h/2 carry a partial volume: they take the value at r = delta (the
+        # polynomials themselves change sign beyond 1, which could cancel m = sum omega |xi|^2 V)
+        rho = torch.clamp(r / delta, max=1.0)[:, None]
+        basis = self._binom * _powers(rho, self.degree) * _powers(1 - rho, self.degree).flip(-1)
         return (basis @ D) / r**self.alpha
 
     def moment(self, k, delta, params):

@@ -99,3 +99,17 @@ def test_bernstein_input_errors():
         mat.stiffness({"K": 1.0, "G": 1.0, "delta": 2.0})
     with pytest.raises(ValueError, match="3 finite coefficients"):
         mat.stiffness({"K": 1.0, "G": 1.0, "D": torch.ones(2), "delta": 2.0})
+
+
+def test_bernstein_beyond_the_horizon_and_second_derivatives():
+    """Bonds between delta and delta + h/2 (partial volumes) take omega(delta), whatever the
+    polynomials do beyond 1; omega is twice differentiable in delta and D also where r = delta
+    (a tensor power x**0 would give 0 * inf there)."""
+    b = Bernstein(3)
+    D = torch.tensor([1.0, 2.0, 0.5, 0.3], requires_grad=True)
+    delta = torch.tensor(2.0, requires_grad=True)
+    r = torch.tensor([0.5, 2.0, 2.3, 2.49])
+    w = b(r, delta, {"D": D})
+    assert torch.allclose(w[1:], D[-1].detach().expand(3))
+    H = torch.autograd.functional.hessian(lambda z: b(r, z[4], {"D": z[:4]}).sum() ** 2, torch.cat([D, delta[None]]).detach())
+    assert bool(torch.isfinite(H).all())

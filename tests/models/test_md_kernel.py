@@ -1,0 +1,52 @@
+"""models/md_kernel.py on synthetic periodic PD data (tests/learn/test_kernel.py's sheet): the
+likelihood is stationary at the truth and the log density's Hessian (the Laplace precision) is
+finite and negative definite there, apart from the free scale of D."""
+import numpy as np
+import pytest
+import torch
+from pyro import poutine
+
+from bayespd.learn.kernel import lps_params
+from bayespd.models.md_kernel import md_kernel
+from tests.learn.test_kernel import MODES, sheet, sinusoidal_forces
+
+LAM, MU, D = -1.0, 3.0, [0.5, 2.0, 1.0]
+
+
+def log_density(model, y, values, site=None):
+    """The model's log density at ``values`` (only ``site``'s term when given)."""
+    trace = poutine.trace(poutine.condition(model, data=values)).get_trace(y)
+    return trace.log_prob_sum() if site is None else trace.nodes[site]["fn"].log_prob(y).sum()
+
+
+def test_likelihood_is_stationary_and_the_precision_definite_at_the_truth():
+    s = sheet()
+    delta = 2.6 * s.material.particles.h
+    f = sinusoidal_forces(s, MODES)
+    y = s.spectral_solve(lps_params(LAM, MU, D, delta), f).detach()
+    scales = y.pow(2).mean((1, 2)).sqrt()
+    model = md_kernel(s, f, scales, nominal=MU)
+    names = ("lam_plus_mu", "mu", "delta")
+
+    def at(z, site=None):  # z = (log(lam + mu), log mu, delta, log D), sigma fixed
+        return log_density(model, y, {"lam_plus_mu": torch.exp(z[0]), "mu": torch.exp(z[1]), "delta": z[2],
+                                      "d": z[3:], "sigma": torch.tensor(0.01)}, site)
+
+    truth = torch.tensor([np.log(LAM + MU), np.log(MU), delta, *np.log(D)])
+    H = torch.autograd.functional.hessian(at, truth)
+    assert bool(torch.isfinite(H).all())
+    # the log coefficients' common shift is free (only D's shape matters): project it out
+    shift = torch.cat([torch.zeros(3), torch.ones(3) / np.sqrt(3)])
+    P = torch.eye(6) - torch.outer(shift, shift)
+    eig = torch.linalg.eigvalsh(-P @ H @ P)
+    assert eig[0].abs() < 1e-6 * eig[-1] and bool((eig[1:] > 0).all())
+    z = truth.clone().requires_grad_(True)
+    grad = torch.autograd.grad(at(z, "y"), z)[0]  # the likelihood is stationary at the truth
+    assert float(grad.abs().max()) < 1e-6 * float(H.abs().max())
+
+
+def test_scales_must_be_one_positive_rms_per_load():
+    s = sheet()
+    f = sinusoidal_forces(s, MODES)
+    with pytest.raises(ValueError, match="one positive RMS per load"):
+        md_kernel(s, f, torch.ones(2), nominal=1.0)
