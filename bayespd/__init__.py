@@ -25,6 +25,7 @@ from bayespd.meshes import from_mesh  # noqa: E402
 from bayespd.gmrf import GMRF  # noqa: E402
 from bayespd.nonlinear import NonlinearBonds  # noqa: E402
 from bayespd.problem import Scene  # noqa: E402
+from bayespd.held import Held  # noqa: E402
 from bayespd.learn.kernel import lps_params, solvability_penalty  # noqa: E402
 from bayespd.linalg.adjoint import solve  # noqa: E402
 from bayespd.linalg.sparse import ConvergenceError, NotPositiveDefiniteError  # noqa: E402
@@ -40,7 +41,7 @@ __all__ = [
     "edge_mask", "finite_mask", "model_data", "read_dice", "frame_data",
     "Field", "from_grid_field", "from_point_field", "read_field", "RigidNuisance",
     "point_support", "roller", "point_load", "traction", "SymmetryPlane", "write_vtu", "write_pvd",
-    "VTKSeries", "Scene", "NotPositiveDefiniteError", "ConvergenceError", "solve",
+    "VTKSeries", "Scene", "Held", "NotPositiveDefiniteError", "ConvergenceError", "solve",
     "ReducedScene", "Discrepancy", "estimate_discrepancy", "prior_draws", "posterior_draws", "gaussian_draws", "LogFeatures",
     "ElasticFeatures", "lps_params", "solvability_penalty",
 ]

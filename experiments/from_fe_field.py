@@ -11,8 +11,8 @@ the same path as for a DIC file):
 * adjoint Tikhonov of K, G at delta = 3 h, plain LPS and with the surface correction, started at
   the VFM estimate (bounds two decades each way: the VFM under noise can be far off);
 * Laplace (``bp.fit(..., "laplace")``) on a reduced scene (``bp.ReducedScene`` from 16 prior
-  draws, delta held at 3 h, priors LogNormal(log Tikhonov estimate, 0.5)) with the
-  approximation-error term of the plain LPS against the FE peer (``fe_bayes.fe_error_term``:
+  draws, delta held at 3 h by ``bp.Held``, priors LogNormal(log Tikhonov estimate, 0.5)) with the
+  approximation-error term of the plain LPS against the FE peer (``fe_error_term``:
   16 FE solves at h_FE = 1 mm, not the data's 0.5 mm mesh, over nu in [0.15, 0.45], once per
   geometry): posterior mean and 90 % intervals of E and nu.
 
@@ -29,10 +29,10 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
 
 import common  # noqa: F401
 from common import run_dir, write_metrics
-from fe_bayes import AtHorizon, fe_error_term, young_intervals
 
 import bayespd as bp
 from bayespd.infer import fit
@@ -48,6 +48,37 @@ TERM_NUS = np.linspace(0.15, 0.45, 16)  # the term's design: the issue's range o
 TARGETS = {"vfm_K": 0.005, "vfm_G": 0.005, "tikhonov_E": 0.02, "tikhonov_nu": 0.02,
            "tikhonov_corrected_E": 0.02, "tikhonov_corrected_nu": 0.02, "laplace_E": 0.02, "laplace_nu": 0.02}
 METHODS = ("vfm", "tikhonov", "tikhonov_corrected", "laplace")
+
+
+def fe_error_term(fe_at, scene, nus, inside, young: float = 4000.0) -> bp.Discrepancy:
+    """The approximation-error term (Kaipio & Somersalo 2007): the relative error of ``scene``
+    (delta held: ``bp.Held``) against the FE peer ``fe_at(young, nu, points)`` on a design of Poisson ratios ``nus`` (smooth trend in log(G / K)); at the
+    observation points ``inside(points)`` leaves out (a hole: masked data) the error is 0."""
+    points = scene.observation.points.numpy() if torch.is_tensor(scene.observation.points) \
+        else np.asarray(scene.observation.points)
+    draws = [dict(zip(("K", "G"), map(float, bp.moduli_from_young(young, nu)))) for nu in nus]
+
+    keep = inside(points)
+
+    def reference(params):
+        E, nu = bp.young_from_moduli(params["K"], params["G"])
+        u = scene.predict(params).clone()
+        u[torch.as_tensor(keep)] = torch.as_tensor(fe_at(float(E), float(nu), points[keep]))
+        return u
+
+    with torch.no_grad():
+        return bp.estimate_discrepancy(reference, scene.predict, draws, dependence="smooth",
+                                       features=bp.ElasticFeatures(with_delta=False), relative=True,
+                                       explained=0.9999, points=scene.observation.points)
+
+
+def young_intervals(tree, level: float = 0.9) -> dict:
+    """Mean and central ``level`` interval of E and nu over the posterior draws of K, G."""
+    post = tree["posterior"]
+    E, nu = bp.young_from_moduli(post["K"].values.reshape(-1), post["G"].values.reshape(-1))
+    q = [(1 - level) / 2, (1 + level) / 2]
+    return {k: {"mean": float(np.mean(v)), "sd": float(np.std(v)), "interval_90": np.quantile(v, q).tolist()}
+            for k, v in (("E", np.asarray(E)), ("nu", np.asarray(nu)))}
 
 
 def fe_at(geometry: str, E: float, nu: float, points, h_fe: float = FE_DATA) -> np.ndarray:
@@ -111,9 +142,10 @@ def calibrate(path, geometry: str, sigma: float, term=None, seed: int = 0):
         out[name] = {**tik.params, "converged": tik.converged, "reason": tik.reason}
         clock.append(time.perf_counter())
     plain, nominal = scene_of(field, geometry, delta), {k: out["tikhonov"][k] for k in ("K", "G")}
-    draws = [{**d, "delta": delta} for d in bp.prior_draws(elastic_plate(AtHorizon(plain, delta), nominal, noise_scale)
+    draws = [{**d, "delta": delta} for d in bp.prior_draws(elastic_plate(bp.Held(plain, delta=delta), nominal, noise_scale)
                                                             .priors, 16, seed, names=["K", "G"])]
-    reduced = AtHorizon(bp.ReducedScene(plain, draws, 0.01 * max(sigma, 1e-3 * scale), delta_range=(delta * (1 - 1e-6), delta)), delta)
+    reduced = bp.Held(bp.ReducedScene(plain, draws, 0.01 * max(sigma, 1e-3 * scale),
+                                      delta_range=(delta * (1 - 1e-6), delta)), delta=delta)
     tree = fit(elastic_plate(reduced, nominal, noise_scale, discrepancy=term), field.data(), "laplace",
                num_samples=1000, seed=seed, progress=False, predictive=False)
     out["laplace"] = {**young_intervals(tree), "rank": reduced.scene.rank,
@@ -127,7 +159,7 @@ def error_term(path, geometry: str):
     wall time (once per geometry: every material shares the grid)."""
     t0 = time.perf_counter()
     field = read(path, geometry)
-    scene = AtHorizon(scene_of(field, geometry, 3 * field.particles.h), 3 * field.particles.h)
+    scene = bp.Held(scene_of(field, geometry, 3 * field.particles.h), delta=3 * field.particles.h)
     term = fe_error_term(lambda E, nu, x: fe_at(geometry, E, nu, x, FE_TERM), scene, TERM_NUS,
                          lambda x: in_body(geometry, x))
     return term, time.perf_counter() - t0

@@ -1,5 +1,5 @@
-"""experiments/fe_bayes.py, the tutorial's own pieces: the horizon held fixed, the term against a
-known reference (inside and outside the measured body), E and nu intervals from K, G draws."""
+"""experiments/from_fe_field.py's own pieces: the term against a known reference (inside and
+outside the measured body), E and nu intervals from K, G draws."""
 import sys
 from pathlib import Path
 
@@ -11,7 +11,7 @@ import xarray as xr
 import bayespd as bp
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
-from fe_bayes import AtHorizon, RatioFeature, fe_error_term, young_intervals  # noqa: E402
+from from_fe_field import fe_error_term, young_intervals  # noqa: E402
 
 POINTS = np.stack([np.linspace(0.0, 9.0, 10), np.zeros(10)], 1)
 T = torch.linspace(1.0, 2.0, 20, dtype=torch.float64).reshape(10, 2)
@@ -21,6 +21,7 @@ class StandIn:
     """A scene stand-in: predict = T (1 + G / K) / K (delta recorded), observed at POINTS."""
 
     material = particles = None
+    param_names = ("K", "G", "delta")
     observation = type("Obs", (), {"points": torch.as_tensor(POINTS)})()
 
     def __init__(self):
@@ -35,25 +36,11 @@ class StandIn:
         return {"delta_seen": draws["delta"]}
 
 
-def test_horizon_is_held_in_predict_and_diagnostics():
-    inner = StandIn()
-    scene = AtHorizon(inner, 3.0)
-    scene.predict({"K": 2.0, "G": 1.0})
-    assert inner.seen == [3.0]
-    out = scene.diagnostics({"K": np.ones((2, 5)), "G": np.ones((2, 5))})
-    assert out["delta_seen"].shape == (2, 5) and np.all(out["delta_seen"] == 3.0)
-
-
-def test_ratio_feature_is_scale_free():
-    a, b = RatioFeature()({"K": 2.0, "G": 1.0}), RatioFeature()({"K": 2e4, "G": 1e4})
-    assert torch.allclose(a, b, rtol=0, atol=1e-15) and float(a) == pytest.approx(np.log(0.5), abs=1e-15)
-
-
 def test_term_of_a_scaled_reference_inside_the_body_only():
     """reference = 1.1 model at the points inside (x < 5), no data outside: the relative error is
     0.1 T / rms(T) inside and 0 outside at every nu (the model's shape does not change with nu),
     so the smooth trend is that constant and the covariance vanishes."""
-    scene = AtHorizon(StandIn(), 3.0)
+    scene = bp.Held(StandIn(), delta=3.0)
     inside = lambda x: x[:, 0] < 5  # noqa: E731
 
     def fe_at(E, nu, points):

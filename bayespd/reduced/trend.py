@@ -45,11 +45,16 @@ class LogFeatures:
 class ElasticFeatures:
     """phi(params) = (log(G / K), delta). With ``relative=True`` the error of a linear elastic
     scene under prescribed loads is unchanged when K and G scale together (u scales as 1 / K in
-    both models), so it depends on the moduli only through G / K: two features, not three."""
+    both models), so it depends on the moduli only through G / K: two features, not three;
+    ``with_delta=False`` (delta held, ``bp.Held``): log(G / K) alone."""
+
+    with_delta: bool = True
 
     def __call__(self, params: dict) -> torch.Tensor:
-        K, G, delta = (torch.as_tensor(params[k], dtype=torch.float64) for k in ("K", "G", "delta"))
-        return torch.stack([torch.log(G / K), delta])
+        K, G = (torch.as_tensor(params[k], dtype=torch.float64) for k in ("K", "G"))
+        if not self.with_delta:
+            return torch.log(G / K).reshape(1)
+        return torch.stack([torch.log(G / K), torch.as_tensor(params["delta"], dtype=torch.float64)])
 
 
 def feature_matrix(features: Callable, draws: Sequence[dict]) -> torch.Tensor:

@@ -99,3 +99,11 @@ def test_relative_error_of_a_loaded_plate_depends_on_the_moduli_through_their_ra
     torch.testing.assert_close(relative_error(scaled), relative_error(at), rtol=1e-10, atol=1e-12)
     assert float(relative_error(at).abs().max()) > 1e-3  # a real discretisation error
     torch.testing.assert_close(bp.ElasticFeatures()(scaled), bp.ElasticFeatures()(at))
+
+
+def test_elastic_features_without_delta_are_the_scale_free_ratio_alone():
+    """With delta held (bp.Held) the features are (log(G / K),): unchanged when K, G scale."""
+    f = bp.ElasticFeatures(with_delta=False)
+    a, b = f({"K": 2.0, "G": 1.0}), f({"K": 2e4, "G": 1e4})
+    assert a.shape == (1,) and torch.equal(a, b) and float(a) == pytest.approx(math.log(0.5), abs=1e-15)
+    assert bp.ElasticFeatures()({"K": 2.0, "G": 1.0, "delta": 3.0}).tolist() == pytest.approx([math.log(0.5), 3.0])
