@@ -37,7 +37,8 @@ def timed(f):
 def main(draws: int):
     scene, y, sigma = bi.fine_problem(rule="smooth")  # the linear ramp's kinks in delta break Laplace
     start = {k: v for k, v in bi.at_truth(scene, sigma).items() if k != "sigma"}
-    model = elastic_plate(scene, demo.NOMINAL, noise_scale=0.05 * float(y.abs().max()))
+    noise = 0.05 * float(y.abs().max())
+    model = elastic_plate(scene, demo.NOMINAL, noise_scale=noise)
     print(f"{scene.particles.n} particles, backend {sparse.default_backend()}, {draws} draws")
     tree, fit_s = timed(lambda: fit(model, {"y": y}, "laplace", num_samples=draws, progress=False,
                                     predictive=False, init_values=start))
@@ -59,15 +60,14 @@ def main(draws: int):
     print("| run | Laplace fit (s) | replay (s) | total (s) |\n|---|---|---|---|")
     for name, replay_s in runs.items():
         print(f"| {name} | {fit_s:.1f} | {replay_s:.1f} | {fit_s + replay_s:.1f} |")
-    reduced_fit(scene, y, sigma, start, draws, tree)
+    reduced_fit(model, noise, y, sigma, start, draws, tree)
 
 
-def reduced_fit(scene, y, sigma, start, draws, full_tree):
-    """The Laplace fit and its predictive on a reduced scene, build included, against the full fit."""
-    noise = 0.05 * float(y.abs().max())
-    model = elastic_plate(scene, demo.NOMINAL, noise_scale=noise)
+def reduced_fit(model, noise, y, sigma, start, draws, full_tree):
+    """The Laplace fit and its predictive on a reduced scene of ``model``'s, build included,
+    against the full fit."""
     snapshots = bp.prior_draws(model.priors, 30, 0, names=["K", "G", "delta"])
-    reduced, build_s = timed(lambda: bp.ReducedScene(scene, snapshots, 0.01 * sigma))
+    reduced, build_s = timed(lambda: bp.ReducedScene(model.scene, snapshots, 0.01 * sigma))
     tree, fit_s = timed(lambda: fit(elastic_plate(reduced, demo.NOMINAL, noise_scale=noise), {"y": y}, "laplace",
                                     num_samples=draws, progress=False, init_values=start))
     print(f"reduced (rank {reduced.rank}): build {build_s:.1f} s + Laplace with predictive({draws}) "
