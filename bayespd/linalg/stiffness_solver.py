@@ -107,7 +107,8 @@ class Assembly:
             c = _ratio(pair, A) if A is not None else None
             if c is not None:
                 cycle = cached[1]
-                return lambda r: cycle(r) / c
+                return cycle if c == 1.0 else (lambda r: cycle(r) / c)
+        self._amg = None  # not kept alive beside the new one (peak memory)
         cycle = amg_preconditioner(terms, self.free_index, positions, pair=pair)
         self._amg = (positions.copy(), cycle)
         self.amg_builds += 1
