@@ -142,8 +142,7 @@ def smoothed_aggregation(K: sp.csr_matrix, modes: np.ndarray, max_coarse: int = 
     in CSR (pyamg's 1 x 1-block BSR products took half its set-up) and rho by a seeded Lanczos
     on D^-1/2 A D^-1/2 (same spectrum, symmetric)."""
     A, B, levels = sp.csr_matrix(K), np.asarray(modes, dtype=np.float64), []
-    if not A.has_sorted_indices:
-        A = A.sorted_indices()  # aggregation visits neighbours in index order: unsorted products cost 2 iterations
+    A.sort_indices()  # in place (no copy; a no-op when sorted): aggregation visits neighbours in index order: unsorted products cost 2 iterations
     while A.shape[0] // (B.shape[1] if levels else 1) > max_coarse and len(levels) < max_levels - 1:
         aggregates, _ = pyamg.aggregation.standard_aggregation(_node_graph(A, B.shape[1] if levels else 1))
         T, B = pyamg.aggregation.fit_candidates(aggregates, B)
