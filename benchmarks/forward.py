@@ -4,8 +4,8 @@ For each particle count, m = delta/h, material (LPS or bond-based PMB) and solve
 
 * set-up: grid, bond search, material, and what the solver caches (pattern and its
   free-dof restriction for a direct solver; nothing for PCG);
-* assemble: K's values on the free pattern (direct), or the matrix-free operator and the
-  preconditioner's Laplacian (PCG);
+* assemble: K's values on the free pattern (direct), or the matrix-free operator (PCG; for
+  ``amg`` also the bond operator K_b that the AMG set-up and the product share);
 * factorise: CHOLMOD / SuperLU (direct, analysis included: it is a one-off solve), or the
   Cholesky factor of the preconditioner (PCG);
 * solve: one right-hand side (PCG: the iterations, to a relative residual of 1e-10);
@@ -43,7 +43,7 @@ def run_one(n: int, m: float, material: str, solver: str, threads: int, scene: b
     import bayespd as bp
     from bayespd import linalg
     from bayespd.linalg import sparse
-    from bayespd.linalg.amg import amg_preconditioner
+    from bayespd.linalg.amg import amg_preconditioner, pair_operator
     from bayespd.linalg.stiffness_solver import Assembly
 
     torch.set_num_threads(threads)
@@ -84,11 +84,12 @@ def run_one(n: int, m: float, material: str, solver: str, threads: int, scene: b
     else:
         rows = {grams[0]: bonds.length <= 1.5 * h + 1e-9} if solver == "pcg-short" else None
         num_terms = [(g, d.detach().numpy(), w.detach().numpy()) for g, d, w in terms]
-        matvec = asm.operator(num_terms)
+        pair = pair_operator(num_terms, asm.free_index) if solver == "amg" else None
+        matvec = asm.operator(num_terms, pair=pair)
         out["assemble_s"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         if solver == "amg":
-            precondition = amg_preconditioner(num_terms, asm.free_index, p.x)
+            precondition = amg_preconditioner(num_terms, asm.free_index, p.x, pair=pair)
         else:
             precondition = asm.laplacian_preconditioner(num_terms, rows)
         out["factorise_s"] = time.perf_counter() - t0

@@ -21,10 +21,20 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController
 
 import pyamg
 from pyamg import amg_core
+
+
+_BLAS = []  # numpy's and scipy's BLAS libraries, found once (a lookup costs 0.6-2 ms)
+
+
+def one_blas_thread():
+    """A context that runs numpy's and scipy's BLAS on one thread (``threadpoolctl``)."""
+    if not _BLAS:
+        _BLAS.append(ThreadpoolController().select(user_api="blas"))
+    return _BLAS[0].limit(limits=1)
 
 
 def rigid_body_modes(x: np.ndarray, component: np.ndarray | None = None) -> np.ndarray:
@@ -47,24 +57,32 @@ def rigid_body_modes(x: np.ndarray, component: np.ndarray | None = None) -> np.n
     return B
 
 
+def pair_rows(g, w) -> np.ndarray:
+    """Rows of a term's operator that enter K_b: those touching two particles (bonds) whose
+    weight is >= 0 (a negative weight counts as 0 in K_b, so its row is left out)."""
+    _, ptr = g.block_parts()
+    return np.flatnonzero((np.diff(ptr) == 2) & (np.asarray(w) >= 0))
+
+
 def pair_operator(terms, free_index: np.ndarray) -> sp.csr_matrix:
-    """K_b on the free dofs: the two-particle rows of every (gram, data, w) term, weights
-    clipped at 0, each A_t restricted to the free columns before its product."""
+    """K_b on the free dofs: the ``pair_rows`` of every (gram, data, w) term, each A_t
+    restricted to those rows and the free columns before its product (sorted indices)."""
     K = None
     for g, d, w in terms:
-        _, ptr = g.block_parts()
-        two = np.flatnonzero(np.diff(ptr) == 2)
+        two = pair_rows(g, w)
         if len(two) == 0:
             continue
         A = g.operator(d)
         A = (A[two] if len(two) < A.shape[0] else A)[:, free_index]
         WA = A.copy()
-        WA.data *= np.repeat(np.maximum(np.asarray(w, dtype=np.float64)[two], 0.0), np.diff(A.indptr))
+        WA.data *= np.repeat(np.asarray(w, dtype=np.float64)[two], np.diff(A.indptr))
         part = A.T.tocsr() @ WA
         K = part if K is None else K + part
     if K is None:
         raise ValueError("no two-particle rows (bonds) to build the AMG preconditioner from")
-    return K.tocsr()
+    K = K.tocsr()
+    K.sort_indices()
+    return K
 
 
 class VCycle:
@@ -76,12 +94,12 @@ class VCycle:
         dense = coarse.toarray()
         lost = np.flatnonzero(np.diag(dense) == 0)  # a mode an aggregate could not carry: decoupled
         dense[lost, lost] = 1.0
-        with threadpool_limits(1, user_api="blas"):
+        with one_blas_thread():
             self.coarse = sla.cho_factor(dense)
 
     def __call__(self, r: np.ndarray) -> np.ndarray:
         B = np.ascontiguousarray((r[:, None] if r.ndim == 1 else r).T)  # columns as rows
-        with threadpool_limits(1, user_api="blas"):
+        with one_blas_thread():
             X = self._cycle(0, B)
         return X[0] if r.ndim == 1 else X.T
 
@@ -100,17 +118,18 @@ class VCycle:
         return X
 
 
-def amg_preconditioner(terms, free_index: np.ndarray, positions: np.ndarray) -> VCycle:
-    """The V-cycle of smoothed aggregation on K_b (``pair_operator``) with the rigid-body
-    modes of ``positions`` (N, dim) as near-null space."""
+def amg_preconditioner(terms, free_index: np.ndarray, positions: np.ndarray,
+                       pair: sp.csr_matrix | None = None) -> VCycle:
+    """The V-cycle of smoothed aggregation on K_b (``pair``, by default ``pair_operator``)
+    with the rigid-body modes of ``positions`` (N, dim) as near-null space."""
     modes = rigid_body_modes(np.asarray(positions, dtype=np.float64))[free_index]
-    return v_cycle(pair_operator(terms, free_index), modes)
+    return v_cycle(pair_operator(terms, free_index) if pair is None else pair, modes)
 
 
 def v_cycle(K: sp.csr_matrix, modes: np.ndarray) -> VCycle:
     """The V-cycle of smoothed aggregation on an SPD matrix K with near-null space ``modes``
     (its rigid-body modes, for elasticity)."""
-    with threadpool_limits(1, user_api="blas"):
+    with one_blas_thread():
         return VCycle(*smoothed_aggregation(K, modes))
 
 
@@ -123,7 +142,7 @@ def smoothed_aggregation(K: sp.csr_matrix, modes: np.ndarray, max_coarse: int = 
     in CSR (pyamg's 1 x 1-block BSR products took half its set-up) and rho by a seeded Lanczos
     on D^-1/2 A D^-1/2 (same spectrum, symmetric)."""
     A, B, levels = sp.csr_matrix(K), np.asarray(modes, dtype=np.float64), []
-    A.sort_indices()  # aggregation visits neighbours in index order: unsorted products cost 2 iterations
+    A.sort_indices()  # in place (no copy; a no-op when sorted): aggregation visits neighbours in index order: unsorted products cost 2 iterations
     while A.shape[0] // (B.shape[1] if levels else 1) > max_coarse and len(levels) < max_levels - 1:
         aggregates, _ = pyamg.aggregation.standard_aggregation(_node_graph(A, B.shape[1] if levels else 1))
         T, B = pyamg.aggregation.fit_candidates(aggregates, B)

@@ -30,6 +30,7 @@ stiffness (``terms(params, intact)``) is the Hessian of this energy at u = 0.
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 import torch
 
 from bayespd.linalg.assembly import Gram
@@ -53,15 +54,11 @@ class LPS(Material):
         super().__init__(particles, bonds, plane, influence, surface_correction)
         n, d, nb = particles.n, self.dim, bonds.n
         self.c_d = C_DEV[d]
-        # family ends: one per bond touching a particle, then one self end per particle
-        self._owner = torch.as_tensor(np.concatenate([bonds.i, bonds.j]))
-        self._end_node = torch.as_tensor(np.concatenate([bonds.j, bonds.i]))
-        self._end_bond = torch.as_tensor(np.concatenate([np.arange(nb), np.arange(nb)]))
-        self._end_sign = torch.cat([torch.ones(nb), -torch.ones(nb)])
-        self._end_volume = self.volume[self._end_node]
-        owner = np.concatenate([bonds.i, bonds.j, np.arange(n)])
-        node = np.concatenate([bonds.j, bonds.i, np.arange(n)])
-        # D: dilatations theta_i = sum_e g_e . u_node(e)
+        # D: dilatations theta_i = sum_e g_e . u_node(e) over the family ends of particle i: one
+        # per bond touching it (bond b as end (i, j) is end b, as end (j, i) end nb + b) and a
+        # self end 2 nb + i; the Gram lists them in row-major (owner, node) order, ``_end_order``
+        # (no sort: the sum of the bond graph's CSR, its transpose and the identity orders them)
+        owner, node, self._end_order = _family_ends(bonds.i, bonds.j, n)
         a = np.arange(d)
         self._dilatation = Gram(np.repeat(owner, d), (d * node[:, None] + a).reshape(-1), n, d * n)
 
@@ -74,11 +71,14 @@ class LPS(Material):
             return K
         return 9 * K * G / (3 * K + 4 * G) if self.plane == "stress" else K + G / 3
 
-    def _family_sum(self, per_end: torch.Tensor) -> torch.Tensor:
-        return torch.zeros(self.particles.n, dtype=per_end.dtype).index_add(0, self._owner, per_end)
+    def _family_sum(self, at_i: torch.Tensor, at_j: torch.Tensor) -> torch.Tensor:
+        """Per-particle sum of per-bond values at_i (to end i) and at_j (to end j)."""
+        z = torch.zeros(self.particles.n, dtype=at_i.dtype)
+        return z.index_add_(0, self.i, at_i).index_add_(0, self.j, at_j)
 
     def _family_volume(self, w: torch.Tensor) -> torch.Tensor:
-        return self._family_sum(w[self._end_bond] * self.length[self._end_bond] ** 2 * self._end_volume)
+        wL2 = w * self.length**2
+        return self._family_sum(wL2 * self.volume[self.j], wL2 * self.volume[self.i])
 
     def weighted_volume(self, w: torch.Tensor) -> torch.Tensor:
         """m_i = sum_j omega beta |xi|^2 V_j (Turner 2015 eq 9) for bond weights w."""
@@ -89,12 +89,14 @@ class LPS(Material):
         return m
 
     def _dilatation_vectors(self, w, m):
-        """g_e with theta_i = sum_e g_e . u_node(e) (Turner 2015 eq 10), self ends last."""
-        bond, d = self._end_bond, self.dim
-        coef = d * w[bond] * self.length[bond] * self._end_volume / m[self._owner]
-        g = (coef * self._end_sign)[:, None] * self.unit[bond]
-        g_self = -torch.zeros(self.particles.n, d, dtype=g.dtype).index_add(0, self._owner, g)
-        return torch.cat([g, g_self])
+        """g_e with theta_i = sum_e g_e . u_node(e) (Turner 2015 eq 10), in the Gram's order."""
+        d, V = self.dim, self.volume
+        wL = d * w * self.length
+        g_i = (wL * V[self.j] / m[self.i])[:, None] * self.unit  # end (i, j)
+        g_j = -(wL * V[self.i] / m[self.j])[:, None] * self.unit  # end (j, i)
+        g_self = -torch.zeros(self.particles.n, d, dtype=g_i.dtype).index_add_(
+            0, self.i, g_i).index_add_(0, self.j, g_j)
+        return torch.cat([g_i, g_j, g_self]).index_select(0, self._end_order)  # backward: index_add, 25 % less CPU than x[idx]
 
     def term_coefficients(self, moduli):
         """(G, kappa - c_d G / d^2): the factors of the bond and the dilatation term."""
@@ -109,7 +111,8 @@ class LPS(Material):
         w = self.bond_weight(params)
         m = self.weighted_volume(w)
         theta = self._dilatation.apply(self._dilatation_vectors(w, m).reshape(-1), u.reshape(-1))
-        sum_e2 = self._family_sum((factor * w * self.extension(u) ** 2)[self._end_bond] * self._end_volume)
+        we2 = factor * w * self.extension(u) ** 2
+        sum_e2 = self._family_sum(we2 * self.volume[self.j], we2 * self.volume[self.i])
         return 0.5 * (self.kappa(K, G) - c * G / d**2) * theta**2, 0.5 * c * G / m * sum_e2
 
     def bulk_energy_parts(self, moduli, params, axis: int):
@@ -141,6 +144,22 @@ class LPS(Material):
 
     def nonlinear(self, kinematics, params, dtype=torch.float64):
         return LPSForce(kinematics, params, dtype)
+
+
+def _family_ends(i: np.ndarray, j: np.ndarray, n: int):
+    """(owner, node, order) of the family ends of distinct bonds (i, j), i != j, in row-major
+    (owner, node) order: ``order`` holds each one's end id (b for (i_b, j_b), nb + b for
+    (j_b, i_b), 2 nb + k for (k, k)). Sparse CSR sums order them (counting sorts, O(ends))."""
+    nb = len(i)
+    ids = np.arange(1, 2 * nb + n + 1, dtype=np.float64)  # + 1: a sum drops explicit zeros
+    upper = sp.csr_matrix((ids[:nb], (i, j)), shape=(n, n))
+    lower = sp.csr_matrix((ids[nb:2 * nb], (j, i)), shape=(n, n))
+    family = upper + lower + sp.csr_matrix((ids[2 * nb:], np.arange(n), np.arange(n + 1)), shape=(n, n))
+    family.sort_indices()
+    if family.nnz != 2 * nb + n:
+        raise ValueError("bonds must be distinct pairs of distinct particles (as find_bonds gives)")
+    owner = np.repeat(np.arange(n), np.diff(family.indptr))
+    return owner, family.indices.astype(np.int64), torch.as_tensor(family.data.astype(np.int64) - 1)
 
 
 class LPSForce(Force):

@@ -128,3 +128,24 @@ def test_a_dof_no_bond_reaches_keeps_the_hierarchy_finite():
     for (A, P, R), nxt in zip(levels, [lv[0] for lv in levels[1:]] + [coarse]):
         assert abs(R - P.T).max() == 0
         assert abs(nxt - P.T @ A @ P).max() <= 1e-12 * abs(nxt).max()
+
+
+def test_the_hierarchy_is_reused_while_the_bond_operator_only_scales():
+    """A new bulk modulus (not in K_b) or shear modulus (K_b scales by G'/G) reuses the AMG
+    hierarchy: one set-up for three parameter values, the iterations of a fresh set-up, the
+    direct solution to 1e-8 relative; a new horizon (weights not proportional) builds anew."""
+    p, bonds, mat, _ = lps_terms(nx=30, ny=12)
+    asm = Assembly(mat.grams(), ~np.repeat(p.layer("left", 2.6), 2))
+    rhs = np.random.default_rng(5).standard_normal(len(asm.free_index))
+    for k, (K, G, delta) in enumerate([(3000.0, 1500.0, 2.6), (4500.0, 1500.0, 2.6), (3000.0, 2100.0, 2.6)]):
+        terms = mat.terms({"K": K, "G": G, "delta": delta})
+        x = asm.factorize(terms, "amg", positions=p.x)
+        u = x.solve(rhs)
+        assert asm.amg_builds == 1
+        fresh = Assembly(mat.grams(), asm.free).factorize(terms, "amg", positions=p.x)
+        fresh.solve(rhs)
+        assert x.iterations == fresh.iterations, (k, x.iterations, fresh.iterations)
+        exact = asm.factorize(terms, "direct", backend="splu").solve(rhs)
+        assert np.linalg.norm(u - exact) <= 1e-8 * np.linalg.norm(exact)
+    asm.factorize(mat.terms({"K": 3000.0, "G": 1500.0, "delta": 2.3}), "amg", positions=p.x)
+    assert asm.amg_builds == 2

@@ -46,6 +46,23 @@ def test_operator_threads_follow_the_settings():
         assert np.array_equal(asm.operator(terms, threads=1)(x), one)
 
 
+@pytest.mark.parametrize("flip", [False, True])
+def test_operator_with_the_shared_bond_operator(flip):
+    """With K_b given (``pair``, as the AMG path shares it), the product is K_b x plus the other
+    rows: equal to K_ff x to 1e-14 relative, also when some bonds carry negative weights
+    (``flip``: every 7th; such rows are left out of K_b and kept in the other rows)."""
+    from bayespd.linalg.amg import pair_operator
+    asm, terms, _ = clamped()
+    terms = [(g, d.numpy(), w.numpy().copy()) for g, d, w in terms]
+    if flip:
+        terms[0][2][::7] *= -1.0
+    K = sum(g.matrix(d, w) for g, d, w in terms).toarray()[np.ix_(asm.free_index, asm.free_index)]
+    x = np.random.default_rng(4).standard_normal((len(asm.free_index), 2))
+    split = asm.operator(terms, threads=1, pair=pair_operator(terms, asm.free_index))
+    for v in (x, x[:, 0]):
+        assert np.abs(split(v) - K @ v).max() <= 1e-14 * np.abs(K @ v).max()
+
+
 @pytest.mark.parametrize("plane", ["stress", "strain"])
 def test_pcg_matches_direct_solvers(plane):
     """PCG (matrix-free K, bond-Laplacian preconditioner) reaches the direct solution to its
