@@ -1,0 +1,125 @@
+"""The dynamic MD fracture records (experiments/md_graphene_data.py) as PD forward problems on a
+coarse grid, and the paper's metrics of a forward run (paper 004 sec. 5.2-5.3); used by md_learning.py.
+
+Scene: the coarse grid's nodes (spacing h, cells h^2, unit thickness), the learned LPS at delta,
+the 25 A edge slit cut as a pre-crack, the coarse-grained MD density of frame 0. Fracture run:
+the outermost node column on each side follows the coarse-grained MD displacement (linear in
+time between frames; the gripped atoms lie beyond the grid), the other nodes start on the MD
+run's initial velocity field v_x = v0 (1/2 - y / L) clip(x / (W/2), -1, 1)
+(``bayespd.learn.md.fracture_run``). Pulse run: free edges, at rest, the coarse-grained pulse
+body force (linear in time between frames).
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from bayespd.bonds import find_bonds, precrack
+from bayespd.damage import DamageIndex
+from bayespd.discretize import from_points
+from bayespd.influence import Bernstein
+from bayespd.learn.discrepancy import relative_error
+from bayespd.learn.forward import forward_run, linear_in_time
+from bayespd.learn.kernel import lps_params
+from bayespd.learn.md_damage import broken_atom_bonds, cut_coarse_bonds, tip_height
+from bayespd.materials.lps import LPS
+
+DEGREE = 3
+SLIT = [[0.1, -51.0], [0.1, -25.0]]  # the 25 A edge slit at x = 0 (just right of the atom column it removed)
+SLIT_TIP = -25.0                      # A: crack lengths are measured from here
+
+
+@dataclass
+class Scene:
+    material: object
+    params: dict
+    rho: np.ndarray
+    time: np.ndarray
+    u: np.ndarray            # coarse MD displacement (F, N, 2)
+    phi: np.ndarray          # coarse MD damage index (F, N)
+    tip: np.ndarray          # MD crack tip height per frame (A; NaN before the first break)
+    fixed: np.ndarray
+    moving: object
+    v0: np.ndarray
+    body: object
+
+    def run(self, s0, frames=None):
+        """A forward run over the first ``frames`` frames (all: None)."""
+        t = self.time if frames is None else self.time[:frames]
+        return forward_run(self.material, self.params, self.rho, t, s0, self.fixed, self.moving, self.v0, self.body)
+
+
+def scene(coarse, record, kernel: dict, h: float, pulled: bool) -> Scene:
+    """The forward problem of a coarse record (``coarse``: the npz of the coarse graining; ``record``:
+    the atom record) with ``kernel`` = {lambda, mu, D, delta_A}."""
+    x = coarse["nodes"]
+    particles = from_points(x, np.full(len(x), h * h), h=h)
+    delta = kernel["delta_A"]
+    material = LPS(particles, precrack(particles, find_bonds(particles, delta), SLIT), plane="strain",
+                   influence=Bernstein(DEGREE))
+    params = lps_params(kernel["lambda"], kernel["mu"], kernel["D"], delta)
+    X, t, u = record["X"].values, coarse["time"], coarse["u"]
+    pairs, broken = broken_atom_bonds(X, record["U"].values)
+    intact = cut_coarse_bonds(x, material.bonds.i, material.bonds.j, X, pairs, broken)
+    index = DamageIndex(particles, material.bonds, material.bond_weight(params).detach())
+    phi = np.stack([index(torch.as_tensor(g)).numpy() for g in intact])
+    tip = tip_height(0.5 * (X[pairs[:, 0], 1] + X[pairs[:, 1], 1]), broken)
+    v0 = np.zeros_like(x)
+    if pulled:
+        fixed = np.abs(x[:, 0]) >= np.abs(x[:, 0]).max() - h / 2
+        speed = json.loads(record.attrs["settings"])["v0"]
+        length, half_width = np.ptp(X[:, 1]), np.ptp(X[:, 0]) / 2
+        v0[:, 0] = speed * (0.5 - x[:, 1] / length) * np.clip(x[:, 0] / half_width, -1.0, 1.0)
+        return Scene(material, params, coarse["rho"][0], t, u, phi, tip, fixed, linear_in_time(t, u), v0, None)
+    return Scene(material, params, coarse["rho"][0], t, u, phi, tip, np.zeros(len(x), bool), None, v0,
+                 linear_in_time(t, coarse["b"]))
+
+
+def crack_history(time_ps, tip, still: float = 2.5, after: int = 3) -> dict:
+    """Crack length (tip - SLIT_TIP, 0 before initiation) per frame; initiation time (first frame
+    with a broken bond); arrest: the first frame after which the crack grows by less than ``still``
+    A to the end of the record, if at least ``after`` frames follow it (else None: still running);
+    mean running speed from initiation to arrest (or the last frame), A/ps."""
+    length = np.where(np.isnan(tip), 0.0, np.maximum(tip - SLIT_TIP, 0.0))
+    grown = np.flatnonzero(~np.isnan(tip))
+    out = {"length_A": length.tolist(), "final_length_A": float(length[-1])}
+    if grown.size == 0:
+        return {**out, "initiation_ps": None, "arrest_ps": None, "speed_A_per_ps": None}
+    start = int(grown[0])
+    stop = int(np.flatnonzero(length[-1] - length < still)[0])
+    arrested = stop <= len(length) - 1 - after
+    end = stop if arrested else len(length) - 1
+    speed = (length[end] - length[start]) / (time_ps[end] - time_ps[start]) if end > start else 0.0
+    return {**out, "initiation_ps": float(time_ps[start]), "arrest_ps": float(time_ps[stop]) if arrested else None,
+            "speed_A_per_ps": float(speed)}
+
+
+def metrics(sc: Scene, run, frames=slice(None)) -> dict:
+    """The paper's errors of a forward run over ``frames``: displacement (free nodes) and damage."""
+    free = ~sc.fixed
+    out = {"displacement_rel_error": relative_error(run.u[frames], sc.u[frames], free)}
+    try:
+        out["damage_rel_error"] = relative_error(run.phi[frames], sc.phi[frames])
+    except ValueError:  # no MD damage in these frames
+        out["damage_rel_error"] = None
+    return out
+
+
+def pd_tip(sc: Scene, run) -> np.ndarray:
+    """PD crack tip height per frame: the highest midpoint of the bonds with gamma < 1/2."""
+    x, b = sc.material.particles.x, sc.material.bonds
+    return tip_height(0.5 * (x[b.i, 1] + x[b.j, 1]), run.intact < 0.5)
+
+
+def evaluate(sc: Scene, s0, frames=slice(None)) -> dict:
+    """One full forward run at ``s0``: errors over ``frames`` and the whole record, crack histories."""
+    t = time.perf_counter()
+    run = sc.run(s0)
+    wall = time.perf_counter() - t
+    return {"s0": s0, "wall_time_s": wall, "steps": run.steps, "dt_ps": run.dt, "frames": metrics(sc, run, frames),
+            "whole_record": metrics(sc, run), "crack_pd": crack_history(sc.time, pd_tip(sc, run)),
+            "crack_md": crack_history(sc.time, sc.tip)}
