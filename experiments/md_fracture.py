@@ -123,3 +123,44 @@ def evaluate(sc: Scene, s0, frames=slice(None)) -> dict:
     return {"s0": s0, "wall_time_s": wall, "steps": run.steps, "dt_ps": run.dt, "frames": metrics(sc, run, frames),
             "whole_record": metrics(sc, run), "crack_pd": crack_history(sc.time, pd_tip(sc, run)),
             "crack_md": crack_history(sc.time, sc.tip)}
+
+
+def s0_posterior(sc: Scene, half: int, bounds, draws: int = 200, seed: int = 0) -> dict:
+    """Grid posteriors of log s0 from the training frames and their 90 % predictive bands.
+
+    Likelihood: u_md = u_pd(s0) + e on the free nodes of frames 1 .. half - 1, e Gaussian with sigma
+    marginalised under p(sigma) ~ 1/sigma: p(s0 | data) ~ SSE(s0)^(-n/2); prior uniform in log s0.
+    Two readings of n: every nodal value independent ("iid", n = 2 x nodes x frames: ignores the
+    correlation of model error over space, so too narrow) and one independent value per frame
+    ("per_frame", n = frames: the error field of a frame moves as one). Grid: 61 points evenly in
+    log over the prior's ``bounds``, one full-record run each. Predictive: ``draws`` s0 from the grid
+    weights, each run plus its sigma(s0) noise per value; bands over frames half .. end."""
+    grid = np.exp(np.linspace(np.log(bounds[0]), np.log(bounds[1]), 61))
+    free = ~sc.fixed
+    runs = [sc.run(s) for s in grid]
+    values = int(free.sum() * 2 * (half - 1))
+    sse = np.array([((r.u[1:half, free] - sc.u[1:half, free]) ** 2).sum() for r in runs])
+    sigma = np.sqrt(sse / values)
+    late = slice(half, None)
+    data = sc.u[late][:, free]
+    md_len = np.asarray(crack_history(sc.time, sc.tip)["length_A"])
+    out = {}
+    for name, n in (("iid", values), ("per_frame", half - 1)):
+        logp = -0.5 * n * np.log(sse / sse.min())
+        w = np.exp(logp - logp.max())
+        w /= w.sum()
+        rng = np.random.default_rng(seed)
+        pick = rng.choice(len(grid), size=draws, p=w)
+        pred = np.stack([runs[k].u[late][:, free] + sigma[k] * rng.standard_normal(data.shape) for k in pick])
+        lo, hi = np.quantile(pred, [0.05, 0.95], axis=0)
+        lengths = np.stack([crack_history(sc.time, pd_tip(sc, runs[k]))["length_A"] for k in pick])
+        c_lo, c_hi = np.quantile(lengths, [0.05, 0.95], axis=0)
+        cdf = np.cumsum(w)
+        out[name] = {"n": int(n), "s0_q05": float(grid[np.searchsorted(cdf, 0.05)]),
+                     "s0_median": float(grid[np.searchsorted(cdf, 0.5)]), "s0_q95": float(grid[np.searchsorted(cdf, 0.95)]),
+                     "weight_at_grid_ends": float(w[0] + w[-1]),
+                     "extrapolation_band90_node_frame_coverage": float(((data >= lo) & (data <= hi)).all(-1).mean()),
+                     "crack_length_band90_A": {"q05": c_lo.tolist(), "q95": c_hi.tolist()},
+                     "crack_length_md_inside_band_share_of_frames": float(((md_len >= c_lo) & (md_len <= c_hi)).mean())}
+    return {"grid": grid.tolist(), "training_sse_A2": sse.tolist(), "sigma_at_best_A": float(sigma.min()),
+            "values": values, **out}

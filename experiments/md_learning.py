@@ -9,7 +9,7 @@ Phase 2: s0 of the smoothed damage (eq 3.10) by simulation: the dynamic PD forwa
 fracture record (experiments/md_fracture.py, bayespd.learn.forward) with a non-negative kernel
 refitted at the chosen horizon, s0 minimising its displacement error over the first half of the
 record (bayespd.learn.discrepancy); then part 4's tests: the second half, the pulse run, the 3.17 A
-grid, with the crack-length histories. Bayes: the
+grid, with the crack-length histories; a grid posterior of s0 with 90 % predictive bands. Bayes: the
 Laplace posterior of models/md_kernel.py and 90 % predictive bands on the validation loads.
 Writes runs/md_learning/metrics.json with every error and wall time. ``--quick``: one horizon, few
 iterations.
@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from common import quick_seed_arguments, run_dir, write_metrics
-from md_fracture import DEGREE, evaluate, scene
+from md_fracture import DEGREE, evaluate, s0_posterior, scene
 from md_graphene_data import RESOLUTION
 from bayespd.influence import Bernstein
 from bayespd.learn import md, md_files
@@ -140,11 +140,16 @@ def phase_two(kernel, quick, out):
                                    s0_fine)
     for name, test in tests.items():
         print(name, {k: v for k, v in test.items() if not k.startswith("crack")}, flush=True)
+    t = time.perf_counter()
+    posterior = s0_posterior(sc, half, S0_BOUNDS, draws=40 if quick else 200)
+    posterior["wall_time_s"] = time.perf_counter() - t
+    print({k: {a: b for a, b in v.items() if not a.startswith("crack")} for k, v in posterior.items()
+           if k in ("iid", "per_frame")}, flush=True)
     return {"s0": found.s0, "training_displacement_rel_error": found.error,
             "training_displacement_rel_error_no_damage": found.error_intact,
             "evaluations": [{"s0": s, "error": e} for s, e in found.evaluations], "fit_wall_time_s": found.wall_time_s,
             "training_frames": half, "free_nodes": int(free.sum()), "kernel": kernel, "s0_3.17A": s0_fine,
-            "tests": tests}
+            "tests": tests, "s0_posterior": posterior}
 
 
 def bayes(best, data, quick):
@@ -211,6 +216,10 @@ def main():
                                                        "passed": cover is not None and cover >= 0.8}
     inside = S0_BOUNDS[0] * 1.05 < two["s0"] < S0_BOUNDS[1] / 1.05
     targets["s0_interior_minimum"] = {"value": two["s0"], "target": f"inside {S0_BOUNDS}", "passed": inside}
+    for name, post in two["s0_posterior"].items():
+        if name in ("iid", "per_frame"):
+            cover = post["extrapolation_band90_node_frame_coverage"]
+            targets[f"s0_{name}_band90_covers_80pct_node_frames"] = {"value": cover, "target": 0.8, "passed": cover >= 0.8}
     for test, (disp, dmg) in PAPER.items():
         e = two["tests"][test]["frames" if test == "extrapolation" else "whole_record"]
         for kind, paper in (("displacement", disp), ("damage", dmg)):
