@@ -6,14 +6,15 @@ from .datatree import load, modes, save, summary, to_inference_data
 from .fit import METHODS, fit, register
 from .laplace import Laplace, NotPositiveDefiniteHessian
 from .likelihoods import NoiseCovariance, StationaryMarginal, euler_maruyama_transition
-from .mcmc import ChainDivergedError
+from .mcmc import ChainDivergedError, CheckpointMismatchError
 from .method import Draws, Method
 from .priors import ScaledBeta
 from .samplers import HMC, NUTS
 from .svi import SVI
+from .workers import MainGuardError, WorkerError
 
 __all__ = ["fit", "NUTS", "HMC", "SVI", "Laplace", "Method", "Draws", "METHODS", "register",
            "to_inference_data", "save", "load", "summary", "modes", "ScaledBeta", "check_priors",
            "NotPositiveDefiniteHessian", "ChainDivergedError", "NoiseCovariance", "StationaryMarginal",
            "euler_maruyama_transition", "importance_correction", "corrected_summary", "laplace_importance",
-           "UnreliableCorrectionError"]
+           "UnreliableCorrectionError", "CheckpointMismatchError", "WorkerError", "MainGuardError"]

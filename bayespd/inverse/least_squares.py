@@ -27,7 +27,7 @@ import scipy.optimize
 import torch
 
 from bayespd.inverse.regularization import regularization_operator
-from bayespd.inverse.stopping import Monitor, Stop, projected_gradient
+from bayespd.inverse.stopping import EXACT_FIT, Monitor, Stop, projected_gradient
 from bayespd.validate import count, positive
 
 METHODS = ("L-BFGS-B", "Newton-CG", "trust-constr")
@@ -201,7 +201,7 @@ class Objective:
 
 def tikhonov(scene, y, init: dict, *, fixed: dict | None = None, mask=None, sigma: float = 1.0,
              psi=0.0, ref: dict | None = None, bounds: dict | None = None,
-             gtol: float = 1e-12, ftol: float = 1e-13, maxiter: int = 500, maxfun: int = 2000,
+             gtol: float = 1e-12, ftol: float = 1e-10, maxiter: int = 500, maxfun: int = 2000,
              stall: int = 20, L=None, method: str = "L-BFGS-B", hessian: str = "exact") -> TikhonovResult:
     """Estimate the parameters named in ``init`` (starting values) from observations ``y``.
 
@@ -220,13 +220,17 @@ def tikhonov(scene, y, init: dict, *, fixed: dict | None = None, mask=None, sigm
     ``gtol`` bounds the projected gradient of J / J(init) in log-parameters, ``ftol`` the
     relative decrease of J per iteration, ``maxiter`` the iterations, ``maxfun`` the
     evaluations of J; ``stall`` evaluations in a row without a relative decrease above
-    ``ftol`` end a stalled run. ``converged`` is true only if the gradient or decrease test
-    passed; ``reason`` says which, or why the run stopped without converging.
+    ``ftol`` end a stalled run. ``converged`` is true only if the gradient, decrease or
+    exact-fit test passed; ``reason`` says which, or why the run stopped without converging.
+    The default ftol = 1e-10 is above J's round-off (~1e-13 relative, which the old default sat
+    on: whether a noisy fit then converged or its line search got lost depended on the CPU) and
+    far below what moves the answer: near the minimum J - J* = (z - z*)^T H (z - z*) / 2 with
+    J* ~ n / 2 and H ~ n / sd^2, so a decrease of 1e-10 J* is a step of ~1e-5 sd in z.
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     positive("gtol", gtol, "a tolerance on the projected gradient of J / J(init), e.g. 1e-12")
-    positive("ftol", ftol, "a tolerance on the relative decrease of J per iteration, e.g. 1e-13")
+    positive("ftol", ftol, "a tolerance on the relative decrease of J per iteration, e.g. 1e-10")
     count("maxiter", maxiter, 1, "allow at least one iteration")
     count("maxfun", maxfun, 2, "allow at least two evaluations of J")
     count("stall", stall, 2, "a stall is at least two evaluations without progress, e.g. 20")
@@ -280,6 +284,9 @@ def tikhonov(scene, y, init: dict, *, fixed: dict | None = None, mask=None, sigm
     pg = projected_gradient(z, g * gtol / scale, lo, hi)
     if pg <= gtol:
         converged, reason = True, f"projected gradient {pg:.3g} <= gtol={gtol:g}"
+    elif J <= EXACT_FIT * J0:
+        converged, reason = True, (f"J fell to round-off of its start (J / J0 = {J / J0:.3g} <= {EXACT_FIT:g}): "
+                                   "the data are fitted exactly")
     elif stop is not None:
         converged, reason = stop.converged, stop.reason
     else:

@@ -9,7 +9,10 @@ for every problem. On log-parameters z the tests are
   it is ||grad f||_inf), checked by us at the returned point, whatever the optimiser says;
 * relative decrease: 0 < J_{k-1} - J_k <= ftol J_{k-1} over one accepted iteration
   (L-BFGS-B's factr test, but relative to J itself, not to max(J, 1); no decrease at all is
-  no progress, which the stall test judges).
+  no progress, which the stall test judges);
+* an exact fit: J <= EXACT_FIT J0 (J >= 0, so J is within machine epsilon of the start's J of its
+  lower bound: noise-free same-model data fitted to round-off, where the gradient test can fail
+  only by the gradient's own round-off, e.g. 1.6e-12 against gtol = 1e-12 on one CPU and not another).
 
 A minimisation is *converged* only if one of them passed. It stops without converging when
 ``maxfun`` evaluations are spent, or when it stalls: ``stall`` evaluations in a row lower the
@@ -23,6 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
+EXACT_FIT = float(np.finfo(float).eps)  # J / J0 at or below it: the data are fitted to round-off
 LOG_LIMIT = 700.0  # exp(700) ~ 1e304: a parameter beyond it overflows (or underflows below -700)
 
 

@@ -10,7 +10,7 @@ import xarray as xr
 
 from bayespd.infer import HMC, fit
 from bayespd.infer.datatree import build_tree
-from bayespd.infer.mcmc import CheckpointMismatchError
+from bayespd.infer import CheckpointMismatchError
 
 N = 20
 Y = 1.0 + torch.randn(N, generator=torch.Generator().manual_seed(0))

@@ -46,7 +46,7 @@ def test_map_at_fixed_hyper_parameters_is_the_tikhonov_solution(square):
                init_values={"log_G": np.full(coarse.particles.n, math.log(MU0))})
     map_log_mu = tree["sample_stats"]["mode_unconstrained"].values
     kw = tikhonov_settings(model, hyper["G_mean"], hyper["length"], hyper["amplitude"])
-    res = tikhonov(coarse, y, {"G": np.full(coarse.particles.n, MU0)}, fixed=fixed, sigma=sd, gtol=1e-12, **kw)
+    res = tikhonov(coarse, y, {"G": np.full(coarse.particles.n, MU0)}, fixed=fixed, sigma=sd, gtol=1e-12, ftol=1e-13, **kw)
     assert res.converged
     np.testing.assert_allclose(np.log(res.params["G"]), map_log_mu, rtol=0, atol=1e-7)
     assert np.abs(map_log_mu - np.log(truth["G"].numpy())).max() > 1e-3  # a non-trivial field
