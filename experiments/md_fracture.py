@@ -22,7 +22,7 @@ from bayespd.bonds import find_bonds, precrack
 from bayespd.damage import DamageIndex
 from bayespd.discretize import from_points
 from bayespd.influence import Bernstein
-from bayespd.learn.discrepancy import relative_error
+from bayespd.learn.discrepancy import count_damage, relative_error, relative_mse
 from bayespd.learn.forward import forward_run, linear_in_time
 from bayespd.learn.kernel import lps_params
 from bayespd.learn.md_damage import broken_atom_bonds, cut_coarse_bonds, tip_height
@@ -41,6 +41,7 @@ class Scene:
     time: np.ndarray
     u: np.ndarray            # coarse MD displacement (F, N, 2)
     phi: np.ndarray          # coarse MD damage index (F, N)
+    intact: np.ndarray       # MD intact fraction (0/1) of the coarse bonds (F, bonds)
     tip: np.ndarray          # MD crack tip height per frame (A; NaN before the first break)
     fixed: np.ndarray
     moving: object
@@ -74,8 +75,8 @@ def scene(coarse, record, kernel: dict, h: float, pulled: bool) -> Scene:
         speed = json.loads(record.attrs["settings"])["v0"]
         length, half_width = np.ptp(X[:, 1]), np.ptp(X[:, 0]) / 2
         v0[:, 0] = speed * (0.5 - x[:, 1] / length) * np.clip(x[:, 0] / half_width, -1.0, 1.0)
-        return Scene(material, params, coarse["rho"][0], t, u, phi, tip, fixed, linear_in_time(t, u), v0, None)
-    return Scene(material, params, coarse["rho"][0], t, u, phi, tip, np.zeros(len(x), bool), None, v0,
+        return Scene(material, params, coarse["rho"][0], t, u, phi, intact, tip, fixed, linear_in_time(t, u), v0, None)
+    return Scene(material, params, coarse["rho"][0], t, u, phi, intact, tip, np.zeros(len(x), bool), None, v0,
                  linear_in_time(t, coarse["b"]))
 
 
@@ -99,13 +100,20 @@ def crack_history(time_ps, tip, still: float = 2.5, after: int = 3) -> dict:
 
 
 def metrics(sc: Scene, run, frames=slice(None)) -> dict:
-    """The paper's errors of a forward run over ``frames``: displacement (free nodes) and damage."""
+    """The paper's errors of a forward run over ``frames`` (bayespd.learn.discrepancy): displacement
+    (free nodes) and damage (all nodes), ``*_rel_error`` (norm ratio) and ``*_rel_mse`` (its square,
+    the paper's words read literally); damage of the kernel-weighted index (``damage_*``) and of
+    the paper's eq 5.4 count (``damage_eq54_*``), the latter the one the targets use."""
     free = ~sc.fixed
-    out = {"displacement_rel_error": relative_error(run.u[frames], sc.u[frames], free)}
-    try:
-        out["damage_rel_error"] = relative_error(run.phi[frames], sc.phi[frames])
-    except ValueError:  # no MD damage in these frames
-        out["damage_rel_error"] = None
+    u, u_md = run.u[frames], sc.u[frames]
+    out = {"displacement_rel_error": relative_error(u, u_md, free), "displacement_rel_mse": relative_mse(u, u_md, free)}
+    b = sc.material.bonds
+    eq54 = [count_damage(len(free), b.i, b.j, b.length, float(sc.params["delta"]), g[frames]) for g in (run.intact, sc.intact)]
+    for name, (pred, data) in {"damage": (run.phi[frames], sc.phi[frames]), "damage_eq54": eq54}.items():
+        try:
+            out[f"{name}_rel_error"], out[f"{name}_rel_mse"] = relative_error(pred, data), relative_mse(pred, data)
+        except ValueError:  # no MD damage in these frames
+            out[f"{name}_rel_error"] = out[f"{name}_rel_mse"] = None
     return out
 
 

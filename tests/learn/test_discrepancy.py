@@ -6,7 +6,7 @@ import pytest
 from bayespd.bonds import find_bonds, precrack
 from bayespd.discretize import from_points
 from bayespd.influence import Bernstein
-from bayespd.learn.discrepancy import learn_s0, relative_error
+from bayespd.learn.discrepancy import count_damage, learn_s0, relative_error, relative_mse
 from bayespd.learn.forward import MASS, forward_run
 from bayespd.learn.kernel import lps_params
 from bayespd.materials.lps import LPS
@@ -25,6 +25,40 @@ def test_relative_error_is_the_time_average_of_frame_ratios():
         relative_error(pred[:1], data[:1])
     with pytest.raises(ValueError, match="one shape"):
         relative_error(pred[:, :1], data)
+
+
+def test_relative_mse_averages_the_squared_frame_ratios():
+    """Frame ratios 1/2 and 1/4 (frame 0, zero data, skipped): E2 = (1/4 + 1/16) / 2."""
+    data = np.zeros((3, 2))
+    data[1, 0], data[2, 1] = 2.0, 4.0
+    pred = data.copy()
+    pred[1, 0], pred[2, 1] = 3.0, 3.0
+    assert relative_mse(pred, data) == pytest.approx((0.25 + 0.0625) / 2, rel=1e-15)
+    assert relative_error(pred, data) == pytest.approx((0.5 + 0.25) / 2, rel=1e-15)
+
+
+def test_count_damage_is_eq_5_4_on_a_square_grid():
+    """Unit grid 5 x 5, delta = 1.5: the centre node has 8 bonds within delta (4 at 1, 4 at
+    sqrt 2) and the partial-volume bonds at 2 (<= delta + h/2) do not count. Cutting two of the
+    centre's bonds within delta and every bond at 2: phi = 2/8 at the centre, 1/8 at the two
+    (interior) nodes across the cut bonds, 0 elsewhere; half-broken bonds (gamma = 1/2) count half."""
+    g = np.arange(5.0)
+    x = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
+    bonds = find_bonds(from_points(x, np.ones(25), h=1.0), 1.5)
+    centre = 12
+    intact = np.ones(len(bonds.i))
+    assert (bonds.length > 1.5).any(), "no partial-volume bond beyond delta: the test does not test"
+    intact[bonds.length > 1.5] = 0.0
+    cut = np.flatnonzero(((bonds.i == centre) | (bonds.j == centre)) & (bonds.length <= 1.5))[:2]
+    intact[cut] = 0.0
+    other = np.setdiff1d(np.r_[bonds.i[cut], bonds.j[cut]], [centre])
+    phi = count_damage(25, bonds.i, bonds.j, bonds.length, 1.5, np.stack([intact, 0.5 * intact + 0.5]))
+    assert phi[0, centre] == pytest.approx(2 / 8, rel=1e-15) and phi[1, centre] == pytest.approx(1 / 8, rel=1e-15)
+    untouched = np.setdiff1d(np.arange(25), np.r_[centre, other])
+    assert np.all(phi[0, untouched] == 0.0)
+    assert len(other) == 2 and np.allclose(phi[0, other], 1 / 8, rtol=1e-15)
+    with pytest.raises(ValueError, match="no bond within delta"):
+        count_damage(25, bonds.i, bonds.j, bonds.length, 0.5, intact)
 
 
 def test_brent_finds_the_minimum_of_a_smooth_discrepancy_in_log_s0():
