@@ -5,8 +5,11 @@ the periodic sinusoidal (train, eq 5.1) and disk (validation, Table 1) sheets on
 grid (h ~ 5 A, plain cone average: no cracks), learns (lambda, mu, D) (D_k in R) for each horizon
 of a sweep and keeps the horizon with the smallest validation error (Algorithm 1 step 4), and
 compares the learned 2D moduli with the MD sheet's own long-wave moduli (bayespd.learn.moduli).
-Phase 2: s0 of the smoothed damage (eq 3.10) from the first half of the fracture record
-(bayespd.learn.criterion), with a non-negative kernel refitted at the chosen horizon. Bayes: the
+Phase 2: s0 of the smoothed damage (eq 3.10) by simulation: the dynamic PD forward run of the
+fracture record (experiments/md_fracture.py, bayespd.learn.forward) with a non-negative kernel
+refitted at the chosen horizon, s0 minimising its displacement error over the first half of the
+record (bayespd.learn.discrepancy); then part 4's tests: the second half, the pulse run, the 3.17 A
+grid, with the crack-length histories; a grid posterior of s0 with 90 % predictive bands. Bayes: the
 Laplace posterior of models/md_kernel.py and 90 % predictive bands on the validation loads.
 Writes runs/md_learning/metrics.json with every error and wall time. ``--quick``: one horizon, few
 iterations.
@@ -19,14 +22,14 @@ import numpy as np
 import torch
 
 from common import quick_seed_arguments, run_dir, write_metrics
+from md_fracture import DEGREE, evaluate, s0_posterior, scene
+from md_graphene_data import RESOLUTION
 from bayespd.influence import Bernstein
-from bayespd.learn import md_files
-from bayespd.bonds import find_bonds, precrack
-from bayespd.discretize import from_points
+from bayespd.learn import md, md_files
 from bayespd.infer import fit
 from bayespd.learn.coarse_grain import coarse_grain
-from bayespd.learn.criterion import DamageResidual, FractureData, learn_s0
-from bayespd.learn.kernel import learn_kernel, lps_params, relative_errors
+from bayespd.learn.discrepancy import learn_s0, relative_error
+from bayespd.learn.kernel import UnsolvableKernel, learn_kernel, lps_params, relative_errors
 from bayespd.learn.moduli import long_wave_moduli
 from bayespd.learn.periodic import PeriodicSheet, periodic_bonds, periodic_grid
 from bayespd.materials.lps import LPS
@@ -35,19 +38,19 @@ from bayespd.models.md_kernel import md_kernel
 NAME = "md_learning"
 DATA = run_dir("md_graphene_data") / "records"
 NODES = 20        # a side: h = 5.04 x 4.90 A on the 100.9 x 98.0 A periodic box
-DEGREE = 3        # Bernstein degree P (alpha = 0)
 HORIZONS = (1.5, 2.0, 2.5)  # delta / h swept (3 h: 5.8 % validation error, see docs/results.md)
 MODULI_TOLERANCE = 0.05
-SLIT = [[0.1, -51.0], [0.1, -25.0]]  # the 25 A edge slit at x = 0 (between node columns 0 and 5 A)
-GRIP = 3.0        # A: the pulled edge atoms (bayespd.learn.md.fracture_run)
-S0_SWEEP = (0.001, 0.01, 0.03, 0.1, 0.3, 1.0)
+H, FINE = 5.0, 3.17  # A: the coarse grids of the fracture records (md_graphene_data.py)
+S0_BOUNDS = (0.01, 1.0)
+# the paper's time-averaged relative errors (displacement, damage), sec. 5.2-5.3
+PAPER = {"extrapolation": (0.27, 0.09), "pulse": (0.58, 0.15), "grid_3.17A": (0.19, 0.30)}
 
 
-def record(kind: str):
+def record(kind: str, margin: float = 10.0):
     paths = sorted(DATA.glob(f"{kind}-*.nc"))
     if not paths:
         raise FileNotFoundError(f"no {kind} record in {DATA}: run experiments/md_graphene_data.py first")
-    return md_files.read_md(paths[0])
+    return md_files.read_md(paths[0], margin)
 
 
 def coarse(ds, particles, out, name):
@@ -97,25 +100,56 @@ def phase_one(quick: bool, out):
             "learned_moduli_eV_per_A2": learned, "moduli_rel_error": rel}, data
 
 
-def phase_two(best):
-    """s0 (eq 4.8) from the first half of the WENO-coarse-grained fracture record (h = 5 A)."""
-    z = np.load(run_dir("md_graphene_data") / "coarse_h5_weno.npz")
-    particles = from_points(z["nodes"], np.full(len(z["nodes"]), 25.0), h=5.0)
-    bonds = precrack(particles, find_bonds(particles, best["delta_A"]), SLIT)
-    material = LPS(particles, bonds, plane="strain", influence=Bernstein(DEGREE))
-    params = lps_params(best["lambda"], best["mu"], best["D"], best["delta_A"])
-    inner = 50.0 - GRIP - 2 * 5.0 - best["delta_A"]  # clear of the grips' cones and the free edges' families
-    nodes = (np.abs(particles.x) <= inner).all(axis=1)
-    half = (len(z["time"]) + 1) // 2
-    data = FractureData(z["rho"][:half], z["u"][:half], z["b"][:half], float(np.diff(z["time"]).mean()), nodes)
-    residual = DamageResidual(material, params, data)
-    curve = {f"{s0:g}": residual(s0) for s0 in S0_SWEEP}
-    found = learn_s0(residual, bounds=(S0_SWEEP[0], S0_SWEEP[-1]))
-    inertia = float(data.dt * (residual.inertia[:, nodes] ** 2).sum())
-    return {"s0": found.s0, "residual": found.residual, "residual_intact": found.residual_intact,
-            "residual_inertia_only": inertia, "residual_curve": curve, "evaluations": found.evaluations,
-            "wall_time_s": found.wall_time_s, "frames": half, "nodes": int(nodes.sum()),
-            "at_lower_bound": found.s0 < 1.01 * S0_SWEEP[0]}
+def coarse_pulse(out, nodes, h):
+    """The pulse record WENO-coarse-grained onto ``nodes`` as md_graphene_data does the fracture
+    record (cached in ``out``)."""
+    path = out / "coarse_pulse_h5_weno.npz"
+    if not path.exists():
+        ds = record("pulse", margin=20.0)
+        cg = coarse_grain(nodes, ds["X"].values, ds["M"].values, ds["U"].values, ds["B"].values, 2 * h, h * h,
+                          weno=True, band=0.75 * md.A0, resolution=RESOLUTION)
+        np.savez(path, nodes=nodes, u=cg.u, rho=cg.rho, b=cg.b, time=ds["time"].values)
+    return np.load(path)
+
+
+def phase_two(kernel, quick, out):
+    """s0 by simulation (bayespd.learn.discrepancy) on the first half of the fracture record (5 A
+    WENO grid), then the paper's tests: (i) the second half, (ii) the pulse run, (iii) the 3.17 A
+    grid with delta and s0 rescaled (paper sec. 5.3: delta / h fixed, s0 ~ delta^-1/2)."""
+    source = run_dir("md_graphene_data")
+    z, fracture = np.load(source / "coarse_h5_weno.npz"), record("fracture")
+    sc = scene(z, fracture, kernel, H, pulled=True)
+    half = (len(sc.time) + 1) // 2
+    free = ~sc.fixed
+
+    def discrepancy(s0):
+        return relative_error(sc.run(s0, half).u, sc.u[:half], free)
+
+    found = learn_s0(discrepancy, bounds=S0_BOUNDS, xatol=0.2 if quick else 0.02)
+    print({"s0": found.s0, "error": found.error, "intact": found.error_intact}, flush=True)
+    tests = {"extrapolation": evaluate(sc, found.s0, slice(half, None)),
+             "extrapolation_no_damage": evaluate(sc, None, slice(half, None))}
+    t = time.perf_counter()
+    zp = coarse_pulse(out, z["nodes"], H)
+    pulse_cg = time.perf_counter() - t
+    tests["pulse"] = evaluate(scene(zp, record("pulse", margin=20.0), kernel, H, pulled=False), found.s0)
+    tests["pulse"]["coarse_graining_wall_time_s"] = pulse_cg
+    fine = {**kernel, "delta_A": kernel["delta_A"] * FINE / H}
+    s0_fine = float(found.s0 * np.sqrt(H / FINE))
+    tests["grid_3.17A"] = evaluate(scene(np.load(source / "coarse_h3.17_weno.npz"), fracture, fine, FINE, pulled=True),
+                                   s0_fine)
+    for name, test in tests.items():
+        print(name, {k: v for k, v in test.items() if not k.startswith("crack")}, flush=True)
+    t = time.perf_counter()
+    posterior = s0_posterior(sc, half, S0_BOUNDS, draws=40 if quick else 200)
+    posterior["wall_time_s"] = time.perf_counter() - t
+    print({k: {a: b for a, b in v.items() if not a.startswith("crack")} for k, v in posterior.items()
+           if k in ("iid", "per_frame")}, flush=True)
+    return {"s0": found.s0, "training_displacement_rel_error": found.error,
+            "training_displacement_rel_error_no_damage": found.error_intact,
+            "evaluations": [{"s0": s, "error": e} for s, e in found.evaluations], "fit_wall_time_s": found.wall_time_s,
+            "training_frames": half, "free_nodes": int(free.sum()), "kernel": kernel, "s0_3.17A": s0_fine,
+            "tests": tests, "s0_posterior": posterior}
 
 
 def bayes(best, data, quick):
@@ -168,17 +202,30 @@ def main():
     out = run_dir(NAME + ("_quick" if args.quick else ""))
     one, data = phase_one(args.quick, out)
     t = time.perf_counter()
-    two = phase_two(one["non_negative_at_best"])
+    two = phase_two(one["non_negative_at_best"], args.quick, out)
     two["wall_time_s_total"] = time.perf_counter() - t
-    print(two, flush=True)
-    posterior = bayes(one["best"], data, args.quick)
+    try:
+        posterior = bayes(one["best"], data, args.quick)
+    except UnsolvableKernel as error:  # the MAP search stepped onto a kernel with m <= 0 (docs/results.md)
+        posterior = {"failed": str(error), "validation_band90_node_coverage": None}
     print(posterior, flush=True)
     targets = {f"moduli_{k}_within_5pct": {"value": v, "target": MODULI_TOLERANCE, "passed": v <= MODULI_TOLERANCE}
                for k, v in one["moduli_rel_error"].items()}
     cover = posterior["validation_band90_node_coverage"]
-    targets["validation_band90_covers_80pct_nodes"] = {"value": cover, "target": 0.8, "passed": cover >= 0.8}
-    targets["s0_interior_minimum"] = {"value": two["s0"], "target": "a minimum of eq 4.9 inside the bounds",
-                                      "passed": not two["at_lower_bound"]}
+    targets["validation_band90_covers_80pct_nodes"] = {"value": cover, "target": 0.8,
+                                                       "passed": cover is not None and cover >= 0.8}
+    inside = S0_BOUNDS[0] * 1.05 < two["s0"] < S0_BOUNDS[1] / 1.05
+    targets["s0_interior_minimum"] = {"value": two["s0"], "target": f"inside {S0_BOUNDS}", "passed": inside}
+    for name, post in two["s0_posterior"].items():
+        if name in ("iid", "per_frame"):
+            cover = post["extrapolation_band90_node_frame_coverage"]
+            targets[f"s0_{name}_band90_covers_80pct_node_frames"] = {"value": cover, "target": 0.8, "passed": cover >= 0.8}
+    for test, (disp, dmg) in PAPER.items():
+        e = two["tests"][test]["frames" if test == "extrapolation" else "whole_record"]
+        for kind, paper in (("displacement", disp), ("damage", dmg)):
+            v = e[f"{kind}_rel_error" if kind == "displacement" else "damage_eq54_rel_error"]
+            targets[f"{test}_{kind}_error_vs_paper"] = {"value": v, "target": paper,
+                                                         "passed": v is not None and v <= paper}
     write_metrics(NAME + ("_quick" if args.quick else ""), {
         "wall_time_s": time.perf_counter() - start, "phase1": one, "phase2": two, "bayes": posterior,
         "targets": targets,

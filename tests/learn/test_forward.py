@@ -1,0 +1,83 @@
+"""The dynamic PD forward run (bayespd.learn.forward): patch test, energy conservation, wave speed."""
+import numpy as np
+import pytest
+
+from bayespd.bonds import find_bonds
+from bayespd.discretize import from_points
+from bayespd.influence import Bernstein
+from bayespd.learn.forward import MASS, forward_run, linear_in_time
+from bayespd.learn.kernel import lps_params
+from bayespd.materials.lps import LPS
+
+H, DELTA = 5.0, 12.5
+LAM, MU, RHO = 6.76, 5.40, 4.6  # eV/A^2 and g/mol per A^2: the graphene sheet's (docs/results.md)
+PARAMS = lps_params(LAM, MU, [1.0, 2.0, 1.5, 0.5], DELTA)
+
+
+def grid(nx, ny):
+    g = np.stack(np.meshgrid(np.arange(nx) * H, np.arange(ny) * H, indexing="ij"), -1).reshape(-1, 2)
+    p = from_points(g, np.full(len(g), H * H), h=H)
+    return p.x, LPS(p, find_bonds(p, DELTA), plane="strain", influence=Bernstein(3))
+
+
+def test_affine_motion_is_exact_inside_a_prescribed_frame():
+    """u = t A x with a prescribed frame two horizons wide (the frame's own dilatations then see
+    full families) and the interior started on v = A x: no force, the interior stays affine."""
+    x, material = grid(18, 18)
+    A = np.array([[1e-3, 4e-4], [2e-4, -5e-4]])
+    lo, hi = x.min(0) + 2 * DELTA + H / 2, x.max(0) - 2 * DELTA - H / 2
+    frame = ~((x >= lo) & (x <= hi)).all(1)
+    run = forward_run(material, PARAMS, RHO, np.linspace(0, 0.5, 6), prescribed=frame,
+                      moving=lambda t: t * x @ A.T, v0=x @ A.T)
+    exact = 0.5 * x @ A.T
+    assert np.abs(run.u[-1] - exact)[~frame].max() < 1e-12 * np.abs(exact).max()
+
+
+def test_energy_is_conserved_to_second_order_in_dt():
+    """Free body, no damage: Verlet's energy error is bounded and O(dt^2): halving dt divides
+    its largest value over the run by 4 (3.2-4.8 allowed)."""
+    x, material = grid(12, 12)
+    v0 = np.stack([np.sin(np.pi * x[:, 0] / 55), np.cos(np.pi * x[:, 1] / 55)], 1)
+    frames = np.linspace(0, 0.6, 7)
+    drift = [np.abs(r.energy / r.energy[0] - 1).max() for r in
+             (forward_run(material, PARAMS, RHO, frames, v0=v0, safety=s) for s in (0.5, 0.25))]
+    assert drift[0] < 0.02
+    assert 3.2 < drift[0] / drift[1] < 4.8
+
+
+def test_longitudinal_front_travels_at_the_p_wave_speed():
+    """A velocity step on a two-horizon-wide edge layer: the half-level of the step crosses two
+    mid-row stations 100 A apart at c_L = sqrt((lambda + 2 mu) / rho) (plane wave; dispersion of
+    the discrete kernel and the free edges' release waves: 5 % allowed)."""
+    x, material = grid(40, 30)
+    layer = x[:, 0] < 2 * DELTA
+    frames = np.linspace(0, 0.8, 81)
+    run = forward_run(material, PARAMS, RHO, frames, prescribed=layer,
+                      moving=lambda t: np.stack([np.full(len(x), t), np.zeros(len(x))], 1))
+    mid = np.abs(x[:, 1] - x[:, 1].mean()) < H / 2 + 1e-9
+    times = []
+    for station in (50.0, 150.0):
+        k = np.flatnonzero(mid & (np.abs(x[:, 0] - station) < 1e-9))[0]
+        v = np.diff(run.u[:, k, 0]) / np.diff(frames)
+        tm = 0.5 * (frames[1:] + frames[:-1])
+        j = np.flatnonzero(v >= 0.5)[0]
+        times.append(tm[j - 1] + (0.5 - v[j - 1]) / (v[j] - v[j - 1]) * (tm[j] - tm[j - 1]))
+    c = np.sqrt((LAM + 2 * MU) / (MASS * RHO))
+    assert abs(100.0 / (times[1] - times[0]) / c - 1) < 0.05
+
+
+def test_prescribed_history_is_linear_between_frames():
+    at = linear_in_time([0.0, 1.0, 3.0], np.array([[0.0], [2.0], [0.0]]))
+    np.testing.assert_allclose([at(0.5)[0], at(2.0)[0], at(5.0)[0]], [1.0, 1.0, 0.0])
+    with pytest.raises(ValueError, match="increasing"):
+        linear_in_time([0.0, 0.0], np.zeros((2, 1)))
+
+
+def test_bad_input_is_refused_with_the_fix():
+    x, material = grid(6, 6)
+    with pytest.raises(ValueError, match="moving"):
+        forward_run(material, PARAMS, RHO, [0.0, 0.1], prescribed=np.ones(len(x), bool))
+    with pytest.raises(ValueError, match="rho"):
+        forward_run(material, PARAMS, -1.0, [0.0, 0.1])
+    with pytest.raises(ValueError, match="start at t = 0"):
+        forward_run(material, PARAMS, RHO, [0.1, 0.2])
