@@ -24,6 +24,7 @@ after every case; error_vs_time.png). A VFM that finds no positive (K, G) counts
 from __future__ import annotations
 
 import argparse
+import json
 import tempfile
 import time
 from pathlib import Path
@@ -43,33 +44,44 @@ from bayespd.models.elastic_plate import elastic_plate
 from bayespd.reference import plate_with_hole as ph, three_point_bending as tpb
 
 GRID = {"beam": 1.0, "plate": 0.5}  # mm: the DIC step
-FE_DATA, FE_TERM = 0.5, 1.0  # mm: the FE meshes of the data and of the error term
+FE_DATA = {"beam": 0.5, "plate": 0.25}  # mm: the FE mesh of the data, finer than the term's two meshes
+FE_TERM = {"beam": 1.0, "plate": 0.5}  # mm: the term's FE peer (and its mesh error: the peer at twice this h)
 TERM_NUS = np.linspace(0.15, 0.45, 16)  # the term's design: the issue's range of nu
 TARGETS = {"vfm_K": 0.005, "vfm_G": 0.005, "tikhonov_E": 0.02, "tikhonov_nu": 0.02,
            "tikhonov_corrected_E": 0.02, "tikhonov_corrected_nu": 0.02, "laplace_E": 0.02, "laplace_nu": 0.02}
 METHODS = ("vfm", "tikhonov", "tikhonov_corrected", "laplace")
 
 
-def fe_error_term(fe_at, scene, nus, inside, young: float = 4000.0) -> bp.Discrepancy:
+def fe_error_term(fe_at, scene, nus, inside, young: float = 4000.0, fe_coarse=None) -> bp.Discrepancy:
     """The approximation-error term (Kaipio & Somersalo 2007): the relative error of ``scene``
-    (delta held: ``bp.Held``) against the FE peer ``fe_at(young, nu, points)`` on a design of Poisson ratios ``nus`` (smooth trend in log(G / K)); at the
-    observation points ``inside(points)`` leaves out (a hole: masked data) the error is 0."""
+    (delta held: ``bp.Held``) against the FE peer ``fe_at(young, nu, points)`` on a design of
+    Poisson ratios ``nus`` (smooth trend in log(G / K)); at the observation points ``inside(points)``
+    leaves out (a hole: masked data) the error is 0. With ``fe_coarse`` (the peer on a mesh twice
+    as coarse) the peer's own discretisation error, fe_at - fe_coarse at each design point, is
+    added as an independent zero-mean component (``Discrepancy.with_errors``: a bound for the
+    peer's error against any finer mesh, the data's included)."""
     points = scene.observation.points.numpy() if torch.is_tensor(scene.observation.points) \
         else np.asarray(scene.observation.points)
     draws = [dict(zip(("K", "G"), map(float, bp.moduli_from_young(young, nu)))) for nu in nus]
-
-    keep = inside(points)
+    keep = torch.as_tensor(inside(points))
+    predicted, mesh_errors = [], []
 
     def reference(params):
-        E, nu = bp.young_from_moduli(params["K"], params["G"])
-        u = scene.predict(params).clone()
-        u[torch.as_tensor(keep)] = torch.as_tensor(fe_at(float(E), float(nu), points[keep]))
+        E, nu = map(float, bp.young_from_moduli(params["K"], params["G"]))
+        predicted.append(scene.predict(params))  # the model's, returned by ``model`` next: one PD solve per draw
+        u, fine = predicted[-1].clone(), torch.as_tensor(fe_at(E, nu, points[keep.numpy()]))
+        u[keep] = fine
+        if fe_coarse is not None:
+            error = torch.zeros_like(u)
+            error[keep] = fine - torch.as_tensor(fe_coarse(E, nu, points[keep.numpy()]))
+            mesh_errors.append(error.reshape(-1) / predicted[-1].square().mean().sqrt())
         return u
 
     with torch.no_grad():
-        return bp.estimate_discrepancy(reference, scene.predict, draws, dependence="smooth",
+        term = bp.estimate_discrepancy(reference, lambda params: predicted.pop(), draws, dependence="smooth",
                                        features=bp.ElasticFeatures(with_delta=False), relative=True,
                                        explained=0.9999, points=scene.observation.points)
+    return term if fe_coarse is None else term.with_errors(torch.stack(mesh_errors), spread=True)
 
 
 def young_intervals(tree, level: float = 0.9) -> dict:
@@ -81,11 +93,12 @@ def young_intervals(tree, level: float = 0.9) -> dict:
             for k, v in (("E", np.asarray(E)), ("nu", np.asarray(nu)))}
 
 
-def fe_at(geometry: str, E: float, nu: float, points, h_fe: float = FE_DATA) -> np.ndarray:
-    """The FE peer's displacements (points, 2); u scales as 1 / E under prescribed loads."""
-    if geometry == "beam":
-        return tpb.YOUNG / E * tpb.fe_solution(h_fe, nu=nu).at(points)
-    return ph.fe_solution(h_fe, young=E, nu=nu).at(points)
+def fe_at(geometry: str, E: float, nu: float, points, h_fe: float | None = None) -> np.ndarray:
+    """The FE peer's displacements (points, 2) on the mesh of size ``h_fe`` (default: the data's);
+    under prescribed loads u scales as 1 / E, so one solve per nu serves every E."""
+    h_fe = h_fe or FE_DATA[geometry]
+    fe = tpb.fe_solution(h_fe, nu=nu) if geometry == "beam" else ph.fe_solution(h_fe, young=ph.YOUNG, nu=nu)
+    return (tpb.YOUNG if geometry == "beam" else ph.YOUNG) / E * fe.at(points)
 
 
 def fe_grid(geometry: str, E: float, nu: float):
@@ -135,33 +148,44 @@ def calibrate(path, geometry: str, sigma: float, term=None, seed: int = 0):
         vfm = dict(zip(("K", "G"), map(float, bp.moduli_from_young(1e4, 0.3))), failed=str(error))
     clock.append(time.perf_counter())
     out, start, delta = {"vfm": vfm}, {k: vfm[k] for k in ("K", "G")}, 3 * p.h
-    scale, noise_scale = sigma or 0.01 * top, 0.05 * top
+    scale = sigma or 0.01 * top
     for name, surface in (("tikhonov", False), ("tikhonov_corrected", True)):
         tik = tikhonov(scene_of(field, geometry, delta, surface), y, start, fixed={"delta": delta}, mask=field.mask,
                        sigma=scale, bounds={k: (v / 100, v * 100) for k, v in start.items()})
         out[name] = {**tik.params, "converged": tik.converged, "reason": tik.reason}
         clock.append(time.perf_counter())
-    plain, nominal = scene_of(field, geometry, delta), {k: out["tikhonov"][k] for k in ("K", "G")}
+    out["laplace"] = bayes(field, geometry, sigma, {k: out["tikhonov"][k] for k in ("K", "G")}, term, seed)
+    return {m: {**out[m], "wall_time_s": float(t)} for m, t in zip(METHODS, np.diff(clock + [time.perf_counter()]))}
+
+
+def bayes(field, geometry: str, sigma: float, nominal: dict, term, seed: int = 0) -> dict:
+    """Laplace on a reduced scene with the error term ``term``: E, nu means and 90 % intervals, and
+    the MAP (the Tikhonov estimate whose misfit is weighted by the term's covariance)."""
+    delta, top = 3 * field.particles.h, float(np.nanmax(np.abs(field.y)))
+    plain, scale, noise_scale = scene_of(field, geometry, delta), sigma or 0.01 * top, 0.05 * top
     draws = [{**d, "delta": delta} for d in bp.prior_draws(elastic_plate(bp.Held(plain, delta=delta), nominal, noise_scale)
                                                             .priors, 16, seed, names=["K", "G"])]
     reduced = bp.Held(bp.ReducedScene(plain, draws, 0.01 * max(sigma, 1e-3 * scale),
                                       delta_range=(delta * (1 - 1e-6), delta)), delta=delta)
     tree = fit(elastic_plate(reduced, nominal, noise_scale, discrepancy=term), field.data(), "laplace",
                num_samples=1000, seed=seed, progress=False, predictive=False)
-    out["laplace"] = {**young_intervals(tree), "rank": reduced.scene.rank,
-                      "error_estimate_max": float(np.nanmax(tree["sample_stats"]["reduced_error_estimate"].values))}
-    return {m: {**out[m], "wall_time_s": float(t)} for m, t in zip(METHODS, np.diff(clock + [time.perf_counter()]))}
+    mode = json.loads(tree.attrs["map_modes"])[0]["values"]
+    return {**young_intervals(tree), "map": dict(zip(("E", "nu"), map(float, bp.young_from_moduli(mode["K"], mode["G"])))),
+            "rank": reduced.scene.rank,
+            "error_estimate_max": float(np.nanmax(tree["sample_stats"]["reduced_error_estimate"].values))}
 # ---- end of the user's code ----
 
 
 def error_term(path, geometry: str):
-    """The plain LPS's approximation-error term against the FE peer at h_FE = FE_TERM, and its
-    wall time (once per geometry: every material shares the grid)."""
+    """The plain LPS's approximation-error term against the FE peer at h_FE = FE_TERM, with the
+    peer's own mesh error (against h_FE = 2 FE_TERM), and its wall time (once per geometry: every
+    material shares the grid)."""
     t0 = time.perf_counter()
     field = read(path, geometry)
     scene = bp.Held(scene_of(field, geometry, 3 * field.particles.h), delta=3 * field.particles.h)
-    term = fe_error_term(lambda E, nu, x: fe_at(geometry, E, nu, x, FE_TERM), scene, TERM_NUS,
-                         lambda x: in_body(geometry, x))
+    h = FE_TERM[geometry]
+    term = fe_error_term(lambda E, nu, x: fe_at(geometry, E, nu, x, h), scene, TERM_NUS, lambda x: in_body(geometry, x),
+                         fe_coarse=lambda E, nu, x: fe_at(geometry, E, nu, x, 2 * h))
     return term, time.perf_counter() - t0
 
 
