@@ -66,3 +66,24 @@ def test_young_intervals_of_known_draws():
     assert out["E"]["mean"] == pytest.approx(1500.0, rel=1e-12)
     assert out["E"]["interval_90"] == pytest.approx([1050.0, 1950.0], rel=1e-12)
     assert out["nu"]["interval_90"] == pytest.approx([0.3, 0.3], rel=1e-12)
+
+
+def test_term_with_the_peers_mesh_error():
+    """A coarse peer 0.99 x the fine one inside: the mesh error 0.011 T / rms(T) inside (0 outside)
+    at every nu enters as its second moment (rank one, plus its mean square on the diagonal with
+    ``spread``); the trend is that of the fine peer alone."""
+    scene = bp.Held(StandIn(), delta=3.0)
+    inside = lambda x: x[:, 0] < 5  # noqa: E731
+
+    def fe_at(E, nu, points, factor=1.1):
+        K, G = bp.moduli_from_young(E, nu)
+        return factor * scene.predict({"K": float(K), "G": float(G)})[:5].numpy()
+
+    nus = np.linspace(0.15, 0.45, 16)
+    plain = fe_error_term(fe_at, scene, nus, inside)
+    term = fe_error_term(fe_at, scene, nus, inside, fe_coarse=lambda E, nu, x: fe_at(E, nu, x, 1.1 * 0.99))
+    error = 0.011 * T / T.square().mean().sqrt()
+    error[5:] = 0.0
+    e = error.reshape(-1, 1)
+    assert torch.allclose(term.mean, plain.mean, rtol=0, atol=1e-12)
+    assert torch.allclose(term.covariance(), e @ e.T + e.square().mean() * torch.eye(20), rtol=0, atol=1e-12)

@@ -46,6 +46,7 @@ by up to about r in the same units, so the term matters once r / sigma is not sm
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -116,6 +117,25 @@ class Discrepancy:
     def covariance(self) -> torch.Tensor:
         """Gamma_eps = W W^T + diag(d), dense (n, n): for checks and small problems."""
         return self.factor @ self.factor.T + torch.diag(self.diag)
+
+    def with_errors(self, errors, spread: bool = False) -> "Discrepancy":
+        """This term plus an independent zero-mean Gaussian component whose covariance is the
+        second moment (1/m) E^T E of the m rows of ``errors`` (m, n), in this term's units
+        (relative if ``relative``): e.g. the reference's own discretisation error, unknown in
+        sign, from the reference on two meshes, E_i = R_h(theta_i) - R_2h(theta_i) (for a method
+        of order p >= 1, |R_h - R| ~ |R_h - R_2h| / (2^p - 1) <= |R_h - R_2h|: a bound for the
+        reference's error against any finer model). Appended to W as m columns E^T / sqrt(m).
+        With ``spread`` the mean square of E is also added to every entry of d: the part of an
+        error of that size whose shape the m rows do not span (a finer mesh's error is not
+        exactly the coarser pair's), counted as independent entries."""
+        errors = torch.as_tensor(errors, dtype=self.factor.dtype)
+        if errors.ndim != 2 or errors.shape[1] != self.factor.shape[0] or len(errors) == 0:
+            raise ValueError(f"errors must be (m >= 1, {self.factor.shape[0]}): one flattened (points, dim) error "
+                             f"per row, entries point-major like the term's; got {tuple(errors.shape)}")
+        if not bool(torch.isfinite(errors).all()):
+            raise ValueError("errors hold NaN/inf: put 0 where an entry has no error (e.g. outside the body)")
+        diag = self.diag + errors.square().mean() if spread else self.diag
+        return dataclasses.replace(self, factor=torch.cat([self.factor, errors.T / math.sqrt(len(errors))], 1), diag=diag)
 
     def noise_ratio(self, sigma: float) -> float:
         """rms / sigma: the error's size next to the noise sd (see the module's "when it is needed")."""

@@ -155,3 +155,22 @@ def test_relative_error_of_a_scaled_model():
 def test_public_names():
     assert {"Discrepancy", "estimate_discrepancy", "prior_draws", "posterior_draws", "gaussian_draws", "LogFeatures",
             "ElasticFeatures"} <= set(bp.__all__)
+
+
+def test_with_errors_adds_their_second_moment():
+    """Rows E (m, n) add (1/m) E^T E to the covariance (low rank), and with ``spread`` also their
+    mean square to every diagonal entry; the mean and trend are untouched; bad rows are refused."""
+    draws = draws_of(20)
+    term = estimate_discrepancy(lambda p: 1.1 * cheap(p), cheap, draws, relative=True)
+    errors = torch.randn(3, N, generator=torch.Generator().manual_seed(4), dtype=torch.float64)
+    second = errors.T @ errors / 3
+    wider = term.with_errors(errors)
+    assert wider.rank == term.rank + 3 and torch.equal(wider.mean, term.mean)
+    assert torch.allclose(wider.covariance(), term.covariance() + second, rtol=0, atol=1e-12)
+    spread = term.with_errors(errors, spread=True)
+    assert torch.allclose(spread.covariance(), term.covariance() + second + errors.square().mean() * torch.eye(N),
+                          rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match=r"errors must be \(m >= 1, 12\)"):
+        term.with_errors(errors[:, :5])
+    with pytest.raises(ValueError, match="put 0 where an entry has no error"):
+        term.with_errors(torch.full((1, N), float("nan")))
