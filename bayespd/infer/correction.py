@@ -29,6 +29,7 @@ from pyro.poutine.util import site_is_subsample
 from scipy.special import logsumexp
 from tqdm.auto import tqdm
 
+from .mode import REFUSED
 from .space import Unconstrained
 
 GROUP = "importance"
@@ -150,7 +151,7 @@ def laplace_importance(tree: xr.DataTree, model, data: dict) -> xr.DataTree:
     proposal = torch.distributions.MultivariateNormal(
         torch.as_tensor(stats["mode_unconstrained"].values), torch.as_tensor(stats["covariance_unconstrained"].values))
     with torch.no_grad():
-        log_target = np.array([-float(space.potential(row)) for row in z])
+        log_target = np.array([_log_density(space, row) for row in z])
         log_proposal = proposal.log_prob(z).numpy()
     if not np.isfinite(log_proposal).all() or np.isnan(log_target).any() or (log_target == np.inf).any():
         raise ValueError("the Laplace draws give non-finite densities: is the tree a Laplace fit of this model "
@@ -163,17 +164,30 @@ def laplace_importance(tree: xr.DataTree, model, data: dict) -> xr.DataTree:
     return out
 
 
+def _log_density(space, z) -> float:
+    """-U(z), or -inf where the model refuses the parameters (``mode.REFUSED``: outside its support)."""
+    try:
+        return -float(space.potential(z))
+    except REFUSED:
+        return -math.inf
+
+
 def _weighted_group(values: xr.Dataset, log_target: np.ndarray, log_proposal: np.ndarray) -> xr.Dataset:
     """``values`` (over ``sample``) with the raw and PSIS-smoothed log weights of target over
     proposal, the ``corrected_*`` statistics (NaN when k > 0.7) and the attributes ``pareto_k``,
-    ``ess``, ``num_draws``, ``reliable``, ``pareto_k_max``."""
+    ``ess``, ``num_draws``, ``refused_draws``, ``reliable``, ``pareto_k_max``. A draw with
+    log_target = -inf (refused by the model) has weight 0; PSIS smooths the others."""
     log_ratio = log_target - log_proposal
-    num_draws = len(log_ratio)
+    num_draws, kept = len(log_ratio), np.isfinite(log_ratio)
+    if not kept.any():
+        raise ValueError("the model refuses every draw of the approximation (zero exact density at all of "
+                         "them): the approximation misses the model's support; fit it again or draw more")
     log_raw = log_ratio - logsumexp(log_ratio)
-    if np.ptp(log_ratio) <= AGREE:  # the models differ by a constant: uniform weights, nothing to fit
-        log_psis, k = log_raw, -math.inf
+    log_psis = np.full(num_draws, -math.inf)
+    if np.ptp(log_ratio[kept]) <= AGREE:  # the models differ by a constant: uniform weights, nothing to fit
+        log_psis[kept], k = log_raw[kept], -math.inf
     else:
-        log_psis, k = az.psislw(log_ratio, reff=1.0)
+        log_psis[kept], k = az.psislw(log_ratio[kept], reff=1.0)
         k = float(k)
     weights = np.exp(log_psis)
     reliable = bool(k <= K_MAX)
@@ -189,6 +203,7 @@ def _weighted_group(values: xr.Dataset, log_target: np.ndarray, log_proposal: np
                                       stats if reliable else np.full_like(stats, np.nan))
     group = group.assign_coords(sample=np.arange(num_draws), statistic=list(STATISTICS))
     group.attrs = {"pareto_k": k, "ess": float(1.0 / np.sum(weights**2)), "num_draws": int(num_draws),
+                   "refused_draws": int(num_draws - kept.sum()),
                    "reliable": int(reliable), "pareto_k_max": K_MAX}
     return group
 
