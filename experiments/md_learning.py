@@ -6,7 +6,7 @@ grid (h ~ 5 A, plain cone average: no cracks), learns (lambda, mu, D) (D_k in R)
 of a sweep and keeps the horizon with the smallest validation error (Algorithm 1 step 4), and
 compares the learned 2D moduli with the MD sheet's own long-wave moduli (bayespd.learn.moduli).
 Phase 2: s0 of the smoothed damage (eq 3.10) by simulation: the dynamic PD forward run of the
-fracture record (experiments/md_fracture.py, bayespd.learn.forward) with a non-negative kernel
+fracture record (experiments/scenes/md_fracture.py, bayespd.learn.forward) with a non-negative kernel
 refitted at the chosen horizon, s0 minimising its displacement error over the first half of the
 record (bayespd.learn.discrepancy); then part 4's tests: the second half, the pulse run, the 3.17 A
 grid, with the crack-length histories; a grid posterior of s0 with 90 % predictive bands. Bayes: the
@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from common import quick_seed_arguments, run_dir, write_metrics
-from md_fracture import DEGREE, evaluate, s0_posterior, scene
+from bayespd.scenes.md_fracture import DEGREE, evaluate, s0_posterior, scene
 from md_graphene_data import RESOLUTION
 from bayespd.influence import Bernstein
 from bayespd.learn import md, md_files

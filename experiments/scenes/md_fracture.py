@@ -1,5 +1,6 @@
 """The dynamic MD fracture records (experiments/md_graphene_data.py) as PD forward problems on a
-coarse grid, and the paper's metrics of a forward run (paper 004 sec. 5.2-5.3); used by md_learning.py.
+coarse grid, and the paper's metrics of a forward run (paper 004 sec. 5.2-5.3): an example scene
+(``bayespd.scenes.md_fracture``); experiments/md_learning.py runs it and writes the metrics.
 
 Scene: the coarse grid's nodes (spacing h, cells h^2, unit thickness), the learned LPS at delta,
 the 25 A edge slit cut as a pre-crack, the coarse-grained MD density of frame 0. Fracture run:
