@@ -38,7 +38,7 @@ def _grad(space, z):
     return u.detach(), torch.autograd.grad(u, z, materialize_grads=True)[0]
 
 
-def _grad_or_refused(space, z):
+def grad_or_refused(space, z):
     """(potential, gradient) at z, or (inf, None) where the model refuses the parameters (non-
     finite or not positive definite, e.g. a kernel with m <= 0): a rejected trial point."""
     try:
@@ -57,7 +57,7 @@ def find_map(space, hessian_fn=None, gtol=1e-8, max_iter=1000, newton_steps=5, r
     def value_and_grad(x):
         """A trial step into parameters the model refuses (non-finite or not positive
         definite) is an infinite potential: the line search backs off from it."""
-        u, g = _grad_or_refused(space, torch.as_tensor(x))
+        u, g = grad_or_refused(space, torch.as_tensor(x))
         return (math.inf, np.zeros_like(x)) if g is None else (float(u), g.numpy())
 
     x, evaluations, f = (space.initial if start is None else start).numpy(), 0, math.inf
@@ -84,7 +84,7 @@ def find_map(space, hessian_fn=None, gtol=1e-8, max_iter=1000, newton_steps=5, r
         step = torch.cholesky_solve(g[:, None], chol)[:, 0]
         for _ in range(REFUSED_HALVINGS + 1):  # a step into refused parameters is halved
             z_new = z - step
-            u_new, g_new = _grad_or_refused(space, z_new)
+            u_new, g_new = grad_or_refused(space, z_new)
             evaluations += 1
             if g_new is not None:
                 break

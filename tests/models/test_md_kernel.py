@@ -7,7 +7,7 @@ import torch
 from pyro import poutine
 from pyro.infer.autoguide.initialization import init_to_value
 
-from bayespd.infer.mode import _grad_or_refused
+from bayespd.infer.mode import grad_or_refused
 from bayespd.infer.space import Unconstrained
 from bayespd.learn.kernel import lps_params
 from bayespd.materials import ParameterRangeError
@@ -71,6 +71,6 @@ def test_an_inadmissible_kernel_is_a_refused_point_of_the_map_search():
     with pytest.raises(ParameterRangeError, match="not admissible"):
         log_density(model, y, bad)
     space = Unconstrained(model, {"y": y}, init_to_value(values=good))
-    u, g = _grad_or_refused(space, space.initial)
+    u, g = grad_or_refused(space, space.initial)
     assert np.isfinite(float(u)) and g is not None
-    assert _grad_or_refused(space, space.unconstrain(bad).reshape(-1)) == (np.inf, None)
+    assert grad_or_refused(space, space.unconstrain(bad).reshape(-1)) == (np.inf, None)
