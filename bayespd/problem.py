@@ -21,6 +21,12 @@ from bayespd.solvers.noise import Covariance
 from bayespd.solvers.body import LoadedBody
 from bayespd.validate import finite
 
+# Relative residual of the scene's iterative (PCG / AMG-PCG) solves: the adjoint gradient's
+# error, ~ kappa * rtol relative, stays below the Taylor remainder's t^2 term at the steps a
+# calibration takes (tests/test_problem.py: slope 2 for K, G, the load and delta at 1e-8, not
+# at 1e-6); 1e-10 cost 23-25 instead of 19-20 AMG-PCG iterations at 160k particles.
+SCENE_RTOL = 1e-8
+
 
 class Scene:
     """A peridynamic problem built only from the parts it declares (shared/DESIGN.md, principle 1).
@@ -47,13 +53,13 @@ class Scene:
     ``solver``: "auto" (default) picks a direct factorisation or the matrix-free PCG with
     algebraic multigrid ("amg") by size and installed backends (``bayespd.linalg.config``);
     "direct", "pcg" (bond-graph Laplacian factor, ``precondition_radius``) or "amg" force one.
-    The chosen one is ``scene.solver``; iterative solves stop at a relative residual ``rtol``.
+    The chosen one is ``scene.solver``; iterative solves stop at a relative residual ``rtol`` (default ``SCENE_RTOL``).
     """
 
     def __init__(self, material, dirichlet: list[Dirichlet], loads: list[Load] = (),
                  observation: LinearObservation | None = None, *, damage=None, noise=None,
                  eps: float = 0.0, solver: str = "auto", precondition_radius: float | None = 1.5,
-                 rtol: float = 1e-10):
+                 rtol: float = SCENE_RTOL):
         p = material.particles
         if not eps >= 0:
             raise ValueError(f"the confinement eps must be >= 0, got {eps}")
