@@ -38,7 +38,7 @@ class Assembly:
     * ``method="amg"``: the same matrix-free PCG preconditioned by a smoothed-aggregation
       V-cycle on the bond part of K with the rigid-body modes of ``positions`` (N, dim) as
       near-null space (``bayespd.linalg.amg``): no factorisation, nothing from CHOLMOD. The
-      hierarchy is kept and reused while K_b only changes by a factor (``_amg_cycle``).
+      hierarchy and K_b are kept and reused while K_b only changes by a factor (``amg``).
     """
 
     def __init__(self, grams: list[Gram], free: np.ndarray | None = None,
@@ -50,7 +50,7 @@ class Assembly:
             raise ValueError(f"free must be a boolean mask of the {self.n} dofs")
         self.free_index = np.flatnonzero(self.free)
         self._given_pattern = pattern
-        self._amg, self.amg_builds = None, 0  # the latest AMG hierarchy (``_amg_cycle``)
+        self._kept, self.amg_builds = None, 0  # the latest K_b and AMG hierarchy (``amg``)
 
     @cached_property
     def pattern(self) -> Pattern:
@@ -86,33 +86,35 @@ class Assembly:
             raise ValueError("method='amg' needs the particles' positions (N, dim) for the "
                              "rigid-body modes: pass positions=particles.x")
         else:
-            pair = pair_operator(terms, self.free_index)
-            precondition = self._amg_cycle(terms, pair, positions)
+            pair, precondition = self.amg(terms, positions)
             return PCGFactor(self.operator(terms, pair=pair), precondition, len(self.free_index),
                              rtol=rtol, maxiter=maxiter)
         return PCGFactor(self.operator(terms), precondition, len(self.free_index),
                          rtol=rtol, maxiter=maxiter)
 
-    def _amg_cycle(self, terms, pair: sp.csr_matrix, positions: np.ndarray):
-        """The AMG V-cycle for K_b = ``pair``: the cached one, divided by c, when K_b is c > 0
-        times the cached hierarchy's finest matrix to 1e-12 relative (same pattern; same
-        positions), else a new one (``amg_builds`` counts them). Smoothed aggregation is
-        scale-invariant (V-cycle(c A) = V-cycle(A) / c), so a calibration that changes a
-        homogeneous shear modulus, or only the bulk modulus of LPS (not in K_b), pays the set-up
-        once; the product K x stays exact (``pair`` itself)."""
+    def amg(self, terms, positions: np.ndarray):
+        """(K_b, V-cycle) of ``terms``. When the operators of K_b's rows (``pair_rows``) hold
+        the data of the kept K_b and their weights are c > 0 times the kept ones (to 1e-13
+        relative each: only moduli changed, e.g. a homogeneous shear modulus; LPS's bulk
+        modulus is not in K_b), K_b is the kept one times c, not reassembled, and the kept
+        hierarchy is reused divided by c: smoothed aggregation is scale-invariant
+        (V-cycle(c A) = V-cycle(A) / c). Otherwise (a new horizon, positions or pattern of
+        weights) both are built anew; ``amg_builds`` counts the builds."""
         positions = np.asarray(positions, dtype=np.float64)
-        cached = self._amg
-        if cached is not None and np.array_equal(cached[0], positions):
-            A = cached[1].levels[0][0] if cached[1].levels else None
-            c = _ratio(pair, A) if A is not None else None
-            if c is not None:
-                cycle = cached[1]
-                return cycle if c == 1.0 else (lambda r: cycle(r) / c)
-        self._amg = None  # not kept alive beside the new one (peak memory)
-        cycle = amg_preconditioner(terms, self.free_index, positions, pair=pair)
-        self._amg = (positions.copy(), cycle)
+        kept = _KeptPair(terms, positions)
+        c = kept.scale(self._kept) if self._kept is not None else None
+        if c is not None:
+            K, cycle = self._kept.K, self._kept.cycle
+            if c == 1.0:
+                return K, cycle
+            return (sp.csr_matrix((c * K.data, K.indices, K.indptr), shape=K.shape, copy=False),
+                    lambda r: cycle(r) / c)
+        self._kept = None  # not kept alive beside the new one (peak memory)
+        kept.K = pair_operator(terms, self.free_index)
+        kept.cycle = amg_preconditioner(terms, self.free_index, positions, pair=kept.K)
+        self._kept = kept
         self.amg_builds += 1
-        return cycle
+        return kept.K, kept.cycle
 
     def operator(self, terms, threads: int | None = None, pair: sp.csr_matrix | None = None):
         """x -> K_ff x matrix-free (numpy, x of shape (n_free,) or (n_free, k)).
@@ -225,18 +227,44 @@ class Assembly:
         return precondition
 
 
-def _ratio(B: sp.csr_matrix, A: sp.csr_matrix, rtol: float = 1e-12) -> float | None:
-    """c > 0 with |B - c A| <= ``rtol`` max |B| entrywise (their patterns may differ by
-    entries that rounding made exactly zero in one of them), else None."""
-    if A.shape != B.shape or A.nnz == 0:
-        return None
-    a, b = A.diagonal(), B.diagonal()
-    k = int(np.argmax(np.abs(a)))
-    c = b[k] / a[k]
-    if not c > 0:
-        return None
-    gap = (B - c * A).data
-    return float(c) if len(gap) == 0 or np.abs(gap).max() <= rtol * np.abs(B.data).max() else None
+class _KeptPair:
+    """What K_b was assembled from: the data and pair-row weights of the terms that have
+    pair rows, and the positions of the rigid-body modes; ``K`` and ``cycle`` once built."""
+
+    def __init__(self, terms, positions: np.ndarray):
+        self.positions, self.K, self.cycle = positions, None, None
+        self.parts = []
+        for g, d, w in terms:
+            w = np.asarray(w, dtype=np.float64)
+            rows = pair_rows(g, w)
+            if len(rows):
+                self.parts.append((g, np.asarray(d), rows, w[rows]))
+
+    def scale(self, kept: "_KeptPair") -> float | None:
+        """c > 0 with these weights = c x ``kept``'s (to 1e-13 relative each), the same
+        operators, data, rows and positions; else None."""
+        if len(self.parts) != len(kept.parts) or not self.parts or not (
+                self.positions is kept.positions or np.array_equal(self.positions, kept.positions)):
+            return None
+        for (g, d, rows, _), (g0, d0, rows0, _) in zip(self.parts, kept.parts):
+            if g is not g0 or not (_same_buffer(d, d0) or np.array_equal(d, d0)) \
+                    or not np.array_equal(rows, rows0):
+                return None
+        w0 = kept.parts[0][3]
+        k = int(np.argmax(np.abs(w0)))
+        c = float(self.parts[0][3][k] / w0[k])
+        if not (c > 0 and np.isfinite(c)):
+            return None
+        for (*_, w), (*_, w0) in zip(self.parts, kept.parts):
+            if not np.all(np.abs(w - c * w0) <= 1e-13 * np.abs(w)):
+                return None
+        return c
+
+
+def _same_buffer(a: np.ndarray, b: np.ndarray) -> bool:
+    """a and b view the same memory alike (b is kept alive, so its buffer is not reused)."""
+    return (a.shape == b.shape and a.dtype == b.dtype and a.strides == b.strides
+            and a.__array_interface__["data"][0] == b.__array_interface__["data"][0])
 
 
 _POOLS: dict = {}

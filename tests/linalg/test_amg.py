@@ -149,3 +149,28 @@ def test_the_hierarchy_is_reused_while_the_bond_operator_only_scales():
         assert np.linalg.norm(u - exact) <= 1e-8 * np.linalg.norm(exact)
     asm.factorize(mat.terms({"K": 3000.0, "G": 1500.0, "delta": 2.3}), "amg", positions=p.x)
     assert asm.amg_builds == 2
+
+
+@pytest.mark.parametrize("material, changed", [("lps", {"G": 2100.0}), ("lps", {"K": 4500.0}),
+                                               ("pmb", {"K": 4500.0})])
+def test_a_new_modulus_rescales_the_kept_bond_operator(material, changed):
+    """Only a modulus changed (same horizon and particles): K_b is the kept one times c (the
+    same index arrays, nothing reassembled; c = 1 for LPS's bulk modulus, which K_b does not
+    hold) and equals a reassembly to 1e-15 of its largest entry: each entry is a sum of
+    weight x data products, and c x the sum differs from the sum of c x each by rounding.
+    (The hierarchy, reused divided by c, gives the iterations of a fresh one: test above.)"""
+    p = bp.grid_2d(30.0, 12.0, 1.0)
+    cls = bp.LPS if material == "lps" else bp.BondBased
+    mat = cls(p, bp.find_bonds(p, 2.6), plane="stress")
+    asm = Assembly(mat.grams(), ~np.repeat(p.layer("left", 2.6), 2))
+    base = {"K": 3000.0, "G": 1500.0, "delta": 2.6}
+    base = {k: base[k] for k in mat.param_names}
+    kept, _ = asm.amg(mat.terms(base), p.x)
+    terms = mat.terms(dict(base, **changed))
+    K, _ = asm.amg(terms, p.x)
+    assert asm.amg_builds == 1
+    assert np.shares_memory(K.indices, kept.indices) and np.shares_memory(K.indptr, kept.indptr)
+    fresh = pair_operator(terms, asm.free_index)
+    assert abs(K - fresh).max() <= 1e-15 * abs(fresh).max()
+    asm.amg(mat.terms(dict(base, delta=2.3)), p.x)
+    assert asm.amg_builds == 2
