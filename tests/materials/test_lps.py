@@ -92,3 +92,29 @@ def test_family_ends_in_row_major_order_without_a_sort():
     assert np.array_equal(o, owner[expect]) and np.array_equal(nd, node[expect])
     with pytest.raises(ValueError, match="distinct pairs"):
         _family_ends(np.append(i, j[0]), np.append(j, i[0]), n)
+
+
+def test_the_kept_family_gives_the_fresh_terms_and_gradients():
+    """w, m and the dilatation vectors are kept per horizon while it needs no gradient: a second
+    ``terms`` at the same horizon reuses them (the same tensors) and gives the K, G gradients
+    of a fresh material to the last bit; a horizon that needs a gradient is never served from
+    the cache (its gradient equals a fresh material's), and a new horizon recomputes them."""
+    p = bp.grid_2d(12.0, 8.0, 1.0)
+    bonds = bp.find_bonds(p, 3.0)
+    kept, fresh = bp.LPS(p, bonds), bp.LPS(p, bonds)
+    u = torch.as_tensor(np.random.default_rng(3).standard_normal((p.n, 2)))
+
+    def grads(mat, delta_grad):
+        q = {"K": torch.tensor(3000.0, requires_grad=True), "G": torch.tensor(1500.0, requires_grad=True),
+             "delta": torch.tensor(2.6, requires_grad=delta_grad)}
+        leaves = [q[k] for k in ("K", "G", "delta") if q[k].requires_grad]
+        return torch.autograd.grad(mat.form(q, u, u), leaves)
+
+    with torch.no_grad():
+        first = kept.terms({"K": 3000.0, "G": 1500.0, "delta": 2.6})
+    assert kept.terms({"K": 4000.0, "G": 1000.0, "delta": torch.tensor(2.6)})[1][1].data_ptr() == first[1][1].data_ptr()
+    for got, want in zip(grads(kept, False), grads(fresh, False)):
+        assert torch.equal(got, want)
+    for got, want in zip(grads(kept, True), grads(fresh, True)):
+        assert torch.equal(got, want)
+    assert kept.terms({"K": 3000.0, "G": 1500.0, "delta": 2.3})[1][1].data_ptr() != first[1][1].data_ptr()
