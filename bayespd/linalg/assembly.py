@@ -47,8 +47,8 @@ class Gram:
         key = rows * n_cols
         key += cols
         self._identity = len(key) < 2 or bool(np.all(key[1:] >= key[:-1]))
-        if self._identity:  # already row-major (the bond operator is): no copies
-            self.order = np.arange(len(key))
+        if self._identity:  # already row-major (the bond operator is): no copies, no order
+            self.order = None
             self.rows, self.cols = rows, cols
         else:
             self.order = np.argsort(key, kind="stable")  # = lexsort((cols, rows))
@@ -58,7 +58,7 @@ class Gram:
         self.indptr = np.zeros(n_rows + 1, dtype=np.int64)
         np.cumsum(np.bincount(self.rows, minlength=n_rows), out=self.indptr[1:])
         self._rows_t, self._cols_t = torch.as_tensor(self.rows), torch.as_tensor(self.cols)
-        self._order_t = torch.as_tensor(self.order)
+        self._order_t = None if self._identity else torch.as_tensor(self.order)
         self._targets = None  # (pattern, positions in it) of the latest ``values``
         self.block = self._block_size()
 
@@ -97,7 +97,7 @@ class Gram:
         return (A.T @ sp.diags(np.asarray(w)) @ A).tocsr()
 
     def structure(self) -> sp.csr_matrix:
-        A = self.operator(np.ones(len(self.order)))
+        A = self.operator(np.ones(len(self.cols)))
         return (A.T @ A).tocsr()
 
     @cached_property
