@@ -240,10 +240,11 @@ class PCGFactor(Factor):
     def __init__(self, matvec, precondition, n: int, rtol: float = 1e-10, maxiter: int | None = None):
         self.matvec, self.precondition, self.n = matvec, precondition, n
         self.rtol, self.maxiter = rtol, maxiter or max(200, int(4 * np.sqrt(n)))
-        self.iterations = 0
-        super().__init__(self._solve)
+        self.iterations, self.cholmod = 0, None  # ``solve`` is a method: no bound method stored
+        # on the instance, whose reference cycle kept K_b and the V-cycle alive until Python's
+        # rare full collection (fe_convergence: +300 MiB per 3D solve, benchmarks/README.md)
 
-    def _solve(self, b):
+    def solve(self, b):
         b = np.asarray(b, dtype=np.float64)
         if b.shape[0] != self.n:
             raise ValueError(f"right-hand side must have {self.n} rows, got {b.shape[0]}")

@@ -48,6 +48,26 @@ def test_factor_solves_to_rounding(backend):
     assert (factor.cholmod is not None) == (backend == "cholmod")
 
 
+def test_a_pcg_factor_is_freed_by_reference_counting():
+    """No reference cycle holds a PCG factor (nor the operator and preconditioner it holds)
+    once its last reference goes: a cycle waited for Python's rare full collection, and an
+    experiment's solves piled up +300 MiB each (fe_convergence, 3D cantilever)."""
+    import gc
+    import weakref
+
+    spd = grid_spd().tocsr()
+    factor = sparse.PCGFactor(spd.__matmul__, lambda r: r / spd.diagonal(), spd.shape[0])
+    b = np.ones(spd.shape[0])
+    assert np.linalg.norm(spd @ factor.solve(b) - b) <= 1e-10 * np.linalg.norm(b)
+    gone = weakref.ref(factor)
+    gc.disable()
+    try:
+        del factor
+        assert gone() is None
+    finally:
+        gc.enable()
+
+
 def test_pattern_declares_its_node_blocks():
     """``blocks`` must describe the pattern it is given to (node count and block entries);
     a pickled pattern carries its blocks but not CHOLMOD's analysis."""
