@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import ctypes
+import gc
 import time
 
 import numpy as np
@@ -158,6 +159,8 @@ def main(quick: bool):
     series["beam_m3_surface"] = run_series(beam, [(h, 3) for h in plan["beam_m3_surface"]],
                                            beam_iso, beam_lat, surface_correction=True)
 
+    del beam_iso, beam_lat, g  # the 2D FE fields and grid: not under the 3D phase's peak
+    gc.collect()
     print("3D cantilever")
     g3 = bp.grid_3d(cant.LENGTH, cant.WIDTH, cant.DEPTH, min(plan["cantilever_m2_surface"]))
     cant_iso, cant_lat, cant_fe = fe_peers(cant, [2], 3, g3.x[cant.away_mask(g3.x, MARGIN)])
