@@ -46,105 +46,96 @@ class FreeSurface:
     lattice of spacing h) at ``params``. ``free(sites)`` -> bool per missing lattice site ((M, 2)
     positions): True where the site lies beyond a free surface (a broken bond), False beyond a
     prescribed edge (no bond); None: every missing site is beyond a free surface. Bonds of the
-    material that a pre-crack removed are always broken bonds."""
+    material that a pre-crack removed are always broken bonds. Sums run over the directed bond
+    ends (i, j) and (j, i) of the material's bonds and the missing bonds (gamma = 0, du = 0)."""
 
     def __init__(self, material, params: dict, free=None):
         if material.dim != 2:
             raise ValueError("the free-surface correction (paper 004 eq 3.18) is written for 2D: pass a 2D material")
         moduli = material.moduli(params)
         kappa, mu = material.kappa(moduli["K"], moduli["G"]), moduli["G"]
-        self.lam, self.mu = (kappa - mu).detach(), mu.detach()  # in-plane Lame moduli (kappa = lam + mu)
+        self.lam, self.mu = (kappa - mu).detach().numpy(), mu.detach().numpy()  # in-plane Lame (kappa = lam + mu)
         bonds, n = material.bonds, material.particles.n
         delta = params["delta"]
-        K = material.influence(material.length, delta, params).detach()
-        W = bonds.weight(delta).detach()
-        V = material.volume
-        i, j = material.i, material.j
-        self.owner, self.other = torch.cat([i, j]), torch.cat([j, i])
-        xi = torch.as_tensor(bonds.xi)
-        self.xi = torch.cat([xi, -xi])
-        self.KW = torch.cat([K * W * V[j], K * W * V[i]])
-        self.W = torch.cat([W * V[j], W * V[i]])
-        self.r2 = (self.xi**2).sum(1)
-        self.n, self.V = n, V
+        K = material.influence(material.length, delta, params).detach().numpy()
+        W = bonds.weight(delta).detach().numpy()
+        V = material.volume.numpy()
+        i, j = bonds.i, bonds.j
         g_owner, g_xi, g_KW = _missing_bonds(material, params, free)
-        self.m = self._sum(self.KW * self.r2) + _add(g_owner, g_KW * (g_xi**2).sum(1), n)
-        if bool(torch.any(self.m <= 0)):
+        self.n, self.V, self.bonds = n, V, bonds.n
+        self.owner = np.concatenate([i, j, g_owner])
+        self.other = np.concatenate([j, i, g_owner])
+        self.xi = np.concatenate([bonds.xi, -bonds.xi, g_xi])
+        self.KW = np.concatenate([K * W * V[j], K * W * V[i], g_KW])
+        self.W = np.concatenate([W * V[j], W * V[i], np.zeros(len(g_owner))])
+        self.r2 = (self.xi**2).sum(1)
+        self.m = self._sum(self.KW * self.r2)
+        if np.any(self.m <= 0):
             raise ValueError("a node has a non-positive weighted volume m: use a non-negative influence function")
-        self.ghost_s1 = _add(g_owner, g_KW[:, None] * g_xi, n)          # sum K W xi over the missing bonds
-        self.ghost_s3 = _add(g_owner, g_KW[:, None, None, None] * _cube(g_xi), n)
+        self.pairs = self.xi[:, :, None] * self.xi[:, None, :]  # xi (x) xi per end
 
-    def _sum(self, values: torch.Tensor) -> torch.Tensor:
-        return _add(self.owner, values, self.n)
+    def _sum(self, values: np.ndarray) -> np.ndarray:
+        """Per-node sum over the ends owned, for values (E,) or (E, ...)."""
+        if values.ndim == 1:
+            return np.bincount(self.owner, values, self.n)
+        flat = values.reshape(len(values), -1)
+        return np.stack([np.bincount(self.owner, c, self.n) for c in flat.T], 1).reshape(self.n, *values.shape[1:])
 
-    def _gamma(self, intact) -> torch.Tensor:
-        g = torch.ones(len(self.owner) // 2, dtype=torch.float64) if intact is None else torch.as_tensor(intact)
-        return torch.cat([g, g])
+    def _gamma(self, intact) -> np.ndarray:
+        g = np.ones(self.bonds) if intact is None else np.asarray(intact, float)
+        return np.concatenate([g, g, np.zeros(len(self.owner) - 2 * self.bonds)])
 
-    def dilatation(self, u, intact=None) -> torch.Tensor:
+    def dilatation(self, u, intact=None) -> np.ndarray:
         """theta_i (eqs 3.19-3.20); exact (tr H) for u = H x at every node with a 2D intact family."""
-        return self._dilatation(torch.as_tensor(u), self._gamma(intact))
+        u = np.asarray(u, float)
+        return self._dilatation(u[self.other] - u[self.owner], self.KW * self._gamma(intact))
 
-    def _dilatation(self, u, g):
-        du = u[self.other] - u[self.owner]
-        wg = (self.KW * g)[:, None, None]
-        A = 2.0 / self.m[:, None, None] * self._sum(wg * self.xi[:, :, None] * self.xi[:, None, :])
-        B = self._sum(wg * self.xi[:, :, None] * du[:, None, :])
+    def _dilatation(self, du, wg):
+        A = 2.0 / self.m[:, None, None] * self._sum(wg[:, None, None] * self.pairs)
+        B = self._sum(wg[:, None, None] * self.xi[:, :, None] * du[:, None, :])
         return 2.0 / self.m * (_pinv(A) * B).sum((1, 2))
 
-    def normal(self, intact=None) -> torch.Tensor:
+    def normal(self, intact=None) -> np.ndarray:
         """n_i = -q / |q|, q = sum_j gamma xi W (eq 3.21); 0 where q = 0 (then T4 = T5 = 0)."""
         q = self._sum((self.W * self._gamma(intact))[:, None] * self.xi)
-        size = q.norm(dim=1, keepdim=True)
-        return -q / torch.where(size > 0, size, torch.ones_like(size))
+        size = np.linalg.norm(q, axis=1, keepdims=True)
+        return -q / np.where(size > 0, size, 1.0)
 
-    def operator(self, u, intact=None) -> torch.Tensor:
+    def operator(self, u, intact=None) -> np.ndarray:
         """L_i of eq 3.18 (module docstring), (N, 2)."""
-        u, g = torch.as_tensor(u), self._gamma(intact)
-        lam, mu, m = self.lam, self.mu, self.m
-        theta = self._dilatation(u, g)
-        du = u[self.other] - u[self.owner]
-        o = self.owner
+        u, g = np.asarray(u, float), self._gamma(intact)
+        o, lam, mu, m = self.owner, self.lam, self.mu, self.m
+        du = u[self.other] - u[o]
         wg = self.KW * g
-        t1 = -C1 * (lam - mu)[o] / m[o] * wg * (theta[o] + theta[self.other])
-        t2 = -C2 * mu[o] / m[o] * wg * (self.xi * du).sum(1) / self.r2
-        L = self._sum((t1 + t2)[:, None] * self.xi)
-        wb = self.KW * (1 - g)
-        s1 = self._sum(wb[:, None] * self.xi) + self.ghost_s1
-        s3 = self._sum(wb[:, None, None, None] * _cube(self.xi)) + self.ghost_s3
+        theta = self._dilatation(du, wg)
+        t12 = -wg / m[o] * (C1 * (lam - mu)[o] * (theta[o] + theta[self.other])
+                            + C2 * mu[o] * (self.xi * du).sum(1) / self.r2)
         n = self.normal(intact)
-        p = torch.stack([-n[:, 1], n[:, 0]], 1)
-        npp = torch.einsum("iabc,ia,ib,ic->i", s3, n, p, p)
-        nnn = torch.einsum("iabc,ia,ib,ic->i", s3, n, n, n)
+        a = (self.xi * n[o]).sum(1)                                  # xi . n
+        b = self.xi[:, 1] * n[o, 0] - self.xi[:, 0] * n[o, 1]          # xi . p, p = n rotated by +90 degrees
+        wb = self.KW * (1 - g)
+        s1 = self._sum(wb[:, None] * self.xi)
+        nnn = self._sum(wb * a**3 / self.r2)
+        npp = self._sum(wb * a * b**2 / self.r2)
         t3 = -2 * C1 * theta / m * (lam - mu)
         t45 = C2 * theta / (2 * m) * (lam * nnn - (lam + 2 * mu) * npp)
-        return L + t3[:, None] * s1 + t45[:, None] * n
+        return self._sum(t12[:, None] * self.xi) + t3[:, None] * s1 + t45[:, None] * n
 
     def force(self, u, intact=None) -> torch.Tensor:
         """The nodal force -V_i L_i (the ``bayespd.learn.forward`` convention m_i u'' = f_i + V_i b_i)."""
-        return -self.V[:, None] * self.operator(u, intact)
+        return torch.from_numpy(-self.V[:, None] * self.operator(u, intact))
 
     def strain_energy(self, u, intact=None) -> torch.Tensor:
         """u . (-f) / 2: the strain energy where the operator is symmetric (no broken or missing
         bond); with the correction the operator is not an energy's gradient and this is a diagnostic."""
-        u = torch.as_tensor(u)
-        return -0.5 * (u * self.force(u, intact)).sum()
+        return -0.5 * (torch.as_tensor(u) * self.force(u, intact)).sum()
 
 
-def _add(index, values, n):
-    return torch.zeros((n, *values.shape[1:]), dtype=values.dtype).index_add_(0, index, values)
-
-
-def _cube(xi: torch.Tensor) -> torch.Tensor:
-    """xi_a xi_b xi_c / |xi|^2 per bond, (B, 2, 2, 2)."""
-    return xi[:, :, None, None] * xi[:, None, :, None] * xi[:, None, None, :] / (xi**2).sum(1)[:, None, None, None]
-
-
-def _pinv(A: torch.Tensor) -> torch.Tensor:
+def _pinv(A: np.ndarray) -> np.ndarray:
     """Inverse of symmetric 2 x 2 matrices with eigenvalues below A_FLOOR dropped."""
-    e, v = torch.linalg.eigh(A)
-    inv = torch.where(e > A_FLOOR, 1.0 / torch.where(e > A_FLOOR, e, torch.ones_like(e)), torch.zeros_like(e))
-    return (v * inv[:, None, :]) @ v.transpose(1, 2)
+    e, v = np.linalg.eigh(A)
+    inv = np.where(e > A_FLOOR, 1.0 / np.where(e > A_FLOOR, e, 1.0), 0.0)
+    return (v * inv[:, None, :]) @ v.transpose(0, 2, 1)
 
 
 def _missing_bonds(material, params, free):
@@ -178,5 +169,4 @@ def _missing_bonds(material, params, free):
             raise ValueError("free(sites) must return one bool per site")
         missing[empty] = keep
     rows, cols = np.nonzero(missing)
-    return (torch.as_tensor(rows), torch.as_tensor(offsets[cols] * h, dtype=torch.float64),
-            weight[torch.as_tensor(cols)])
+    return rows, (offsets[cols] * h).astype(float), weight.numpy()[cols]

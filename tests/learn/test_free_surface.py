@@ -56,7 +56,7 @@ def test_corrected_dilatation_is_exact_for_linear_fields_at_every_node():
     x, material = body([[-1.0, CRACK_Y], [8 * H, CRACK_Y]])
     A = torch.tensor([[1.3e-3, 4e-4], [-2e-4, -7e-4]], dtype=torch.float64)
     theta = FreeSurface(material, PARAMS).dilatation(torch.as_tensor(x) @ A.T + 0.3)
-    assert torch.allclose(theta, torch.full_like(theta, 6e-4), rtol=0, atol=1e-12 * 6e-4)
+    assert np.abs(theta - 6e-4).max() < 1e-12 * 6e-4
 
 
 @pytest.mark.parametrize("axis", [0, 1])
@@ -69,7 +69,7 @@ def test_traction_free_strain_is_force_free_at_straight_free_edges(axis):
     L = FreeSurface(material, PARAMS).operator(u)
     along = x[:, axis]
     away = (along > along.min() + REACH) & (along < along.max() - REACH)
-    assert float(L[away].abs().max()) < 1e-12 * SCALE
+    assert np.abs(L[away]).max() < 1e-12 * SCALE
     across = x[:, 1 - axis]
     edge = away & ((across == across.min()) | (across == across.max()))
     plain = (stiffness(material) @ u.reshape(-1)).reshape(-1, 2) / material.volume[:, None]
@@ -88,10 +88,10 @@ def test_crack_faces_are_free_surfaces_whether_cut_or_broken():
     assert crosses.sum() == b.n - cut.bonds.n
     u = torch.as_tensor(x) @ uniaxial(0).T
     L_cut = FreeSurface(cut, PARAMS).operator(u)
-    L_broken = FreeSurface(whole, PARAMS).operator(u, torch.as_tensor((~crosses).astype(float)))
-    assert torch.allclose(L_cut, L_broken, rtol=0, atol=1e-13 * SCALE)
+    L_broken = FreeSurface(whole, PARAMS).operator(u, (~crosses).astype(float))
+    assert np.abs(L_cut - L_broken).max() < 1e-13 * SCALE
     away = (x[:, 0] > REACH) & (x[:, 0] < (NX - 1) * H - REACH)
-    assert float(L_cut[away].abs().max()) < 1e-12 * SCALE
+    assert np.abs(L_cut[away]).max() < 1e-12 * SCALE
 
 
 def test_correction_vanishes_in_the_bulk():
@@ -112,9 +112,9 @@ def test_sites_beyond_prescribed_edges_are_no_bonds():
     x, material = body()
     fs = FreeSurface(material, PARAMS, free=lambda sites: np.zeros(len(sites), bool))
     m = material.weighted_volume(material.bond_weight(PARAMS)).detach()
-    assert torch.allclose(fs.m, m, rtol=1e-13, atol=0)
+    np.testing.assert_allclose(fs.m, m.numpy(), rtol=1e-13, atol=0)
     full = FreeSurface(material, PARAMS).m
-    assert torch.allclose(full, full[0].expand_as(full), rtol=1e-13, atol=0)
+    np.testing.assert_allclose(full, full[0], rtol=1e-13, atol=0)
 
 
 def test_nodes_off_a_square_lattice_are_refused():
