@@ -16,7 +16,8 @@ xi W (eq 3.21), and the tangent p = n rotated by +90 degrees. The equation of mo
 = b (eq 3.17); ``force`` returns the nodal force -V_i L_i. The missing bonds of a node next to a free
 surface (lattice sites outside the body, and bonds cut by a pre-crack) enter as broken bonds
 (gamma = 0): they count in m_i and in the (1 - gamma) sums. Sites beyond a prescribed (Dirichlet)
-edge, where the paper has a collar of data, are no bonds at all (``free`` says which is which).
+edge are the paper's collar of data (BOmega_D, eq 3.17): intact bonds to a site that moves with its
+nearest node (the prescribed data held constant outward; ``free`` says which sites are which).
 
 Derivation (the text extraction's eq 3.18 checked, not garbled): for u = H x the sums over the
 complete family of T1 and T2 vanish (odd in xi), so the intact bonds' T1 + T2 equal minus the
@@ -35,6 +36,9 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
+
+from bayespd.bonds import partial_volume
 
 C1, C2 = 2.0, 16.0  # the 2D constants of eqs 3.2 / 3.18
 A_FLOOR = 1e-3      # eigenvalues of (d/m) sum K gamma xi xi W below this (bulk: 1) carry no dilatation:
@@ -45,9 +49,10 @@ class FreeSurface:
     """Eq 3.18 for the 2D material ``material`` (``bayespd.materials.LPS`` on nodes of a square
     lattice of spacing h) at ``params``. ``free(sites)`` -> bool per missing lattice site ((M, 2)
     positions): True where the site lies beyond a free surface (a broken bond), False beyond a
-    prescribed edge (no bond); None: every missing site is beyond a free surface. Bonds of the
-    material that a pre-crack removed are always broken bonds. Sums run over the directed bond
-    ends (i, j) and (j, i) of the material's bonds and the missing bonds (gamma = 0, du = 0)."""
+    prescribed edge (a collar site moving with its nearest node); None: every missing site is beyond
+    a free surface. Bonds of the material that a pre-crack removed are always broken bonds. Sums run
+    over the directed bond ends (i, j) and (j, i) of the material's bonds, the broken missing bonds
+    (gamma = 0, du = 0) and the collar bonds (gamma = 1, the site's u that of its nearest node)."""
 
     def __init__(self, material, params: dict, free=None):
         if material.dim != 2:
@@ -61,13 +66,13 @@ class FreeSurface:
         W = bonds.weight(delta).detach().numpy()
         V = material.volume.numpy()
         i, j = bonds.i, bonds.j
-        g_owner, g_xi, g_KW = _missing_bonds(material, params, free)
+        g_owner, g_other, g_xi, g_K, g_W, self.collar = _missing_bonds(material, params, free)
         self.n, self.V, self.bonds = n, V, bonds.n
         self.owner = np.concatenate([i, j, g_owner])
-        self.other = np.concatenate([j, i, g_owner])
+        self.other = np.concatenate([j, i, g_other])
         self.xi = np.concatenate([bonds.xi, -bonds.xi, g_xi])
-        self.KW = np.concatenate([K * W * V[j], K * W * V[i], g_KW])
-        self.W = np.concatenate([W * V[j], W * V[i], np.zeros(len(g_owner))])
+        self.KW = np.concatenate([K * W * V[j], K * W * V[i], g_K * g_W])
+        self.W = np.concatenate([W * V[j], W * V[i], g_W])
         self.r2 = (self.xi**2).sum(1)
         self.m = self._sum(self.KW * self.r2)
         if np.any(self.m <= 0):
@@ -83,7 +88,7 @@ class FreeSurface:
 
     def _gamma(self, intact) -> np.ndarray:
         g = np.ones(self.bonds) if intact is None else np.asarray(intact, float)
-        return np.concatenate([g, g, np.zeros(len(self.owner) - 2 * self.bonds)])
+        return np.concatenate([g, g, self.collar])
 
     def dilatation(self, u, intact=None) -> np.ndarray:
         """theta_i (eqs 3.19-3.20); exact (tr H) for u = H x at every node with a 2D intact family."""
@@ -139,8 +144,9 @@ def _pinv(A: np.ndarray) -> np.ndarray:
 
 
 def _missing_bonds(material, params, free):
-    """(owner, xi, K W V) of each node's missing bonds: the complete lattice family
-    (``material.lattice_family``) less the material's bonds, without the sites ``free`` rejects."""
+    """(owner, other, xi, K, W V, gamma) of each node's missing bonds: the complete lattice family
+    (``material.lattice_family``) less the material's bonds; broken (gamma = 0, other = owner) or,
+    for the sites ``free`` rejects, collar bonds (gamma = 1, other = the node nearest the site)."""
     x, h = material.particles.x, material.bonds.h
     origin = x.min(0)
     k = np.rint((x - origin) / h).astype(np.int64)
@@ -149,7 +155,8 @@ def _missing_bonds(material, params, free):
                          f"(h = {h:g}): coarse-grain onto a regular grid")
     r, unit, cell = material.lattice_family
     offsets = np.rint(r.numpy()[:, None] * unit.numpy() / h).astype(np.int64)
-    weight = (material.lattice_weight(r, params) * cell).detach()
+    influence = material.influence(r, params["delta"], params).detach().numpy()
+    volume = (partial_volume(r, params["delta"], h, material.bonds.rule) * cell).detach().numpy()
     n, size = len(x), k.max(0) + 1
     lookup = np.full(tuple(size), -1, dtype=np.int64)
     lookup[k[:, 0], k[:, 1]] = np.arange(n)
@@ -161,12 +168,15 @@ def _missing_bonds(material, params, free):
     owner = np.repeat(np.arange(n)[:, None], len(offsets), 1)
     code = np.minimum(owner, target) * n + np.maximum(owner, target)
     missing = (target < 0) | ~np.isin(code, present)
-    empty = missing & (target < 0)
-    if free is not None and empty.any():
-        where = origin + site[empty] * h
-        keep = np.asarray(free(where), bool)
-        if keep.shape != (len(where),):
-            raise ValueError("free(sites) must return one bool per site")
-        missing[empty] = keep
     rows, cols = np.nonzero(missing)
-    return rows, (offsets[cols] * h).astype(float), weight.numpy()[cols]
+    other, gamma = rows.copy(), np.zeros(len(rows))
+    empty = target[rows, cols] < 0
+    if free is not None and empty.any():
+        where = origin + site[rows[empty], cols[empty]] * h
+        broken = np.asarray(free(where), bool)
+        if broken.shape != (len(where),):
+            raise ValueError("free(sites) must return one bool per site")
+        nearest = cKDTree(x).query(where)[1]
+        collar = np.flatnonzero(empty)[~broken]
+        other[collar], gamma[collar] = nearest[~broken], 1.0
+    return rows, other, (offsets[cols] * h).astype(float), influence[cols], volume[cols], gamma

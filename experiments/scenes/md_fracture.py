@@ -8,7 +8,9 @@ the outermost node column on each side follows the coarse-grained MD displacemen
 time between frames; the gripped atoms lie beyond the grid), the other nodes start on the MD
 run's initial velocity field v_x = v0 (1/2 - y / L) clip(x / (W/2), -1, 1)
 (``bayespd.learn.md.fracture_run``). Pulse run: free edges, at rest, the coarse-grained pulse
-body force (linear in time between frames).
+body force (linear in time between frames). ``surface=True``: the free-surface-corrected LPS of
+paper 004 eq 3.18 (``bayespd.learn.free_surface``) with the missing bonds beyond the free edges and
+across the slit as broken bonds; the sites beyond the pulled columns (where the grips are) are no bonds.
 """
 from __future__ import annotations
 
@@ -48,16 +50,18 @@ class Scene:
     moving: object
     v0: np.ndarray
     body: object
+    surface: object = False  # forward_run's: False, True or free(sites) -> bool
 
     def run(self, s0, frames=None):
         """A forward run over the first ``frames`` frames (all: None)."""
         t = self.time if frames is None else self.time[:frames]
-        return forward_run(self.material, self.params, self.rho, t, s0, self.fixed, self.moving, self.v0, self.body)
+        return forward_run(self.material, self.params, self.rho, t, s0, self.fixed, self.moving, self.v0, self.body,
+                           surface=self.surface)
 
 
-def scene(coarse, record, kernel: dict, h: float, pulled: bool) -> Scene:
+def scene(coarse, record, kernel: dict, h: float, pulled: bool, surface: bool = False) -> Scene:
     """The forward problem of a coarse record (``coarse``: the npz of the coarse graining; ``record``:
-    the atom record) with ``kernel`` = {lambda, mu, D, delta_A}."""
+    the atom record) with ``kernel`` = {lambda, mu, D, delta_A}; ``surface``: eq 3.18 (module docstring)."""
     x = coarse["nodes"]
     particles = from_points(x, np.full(len(x), h * h), h=h)
     delta = kernel["delta_A"]
@@ -76,9 +80,12 @@ def scene(coarse, record, kernel: dict, h: float, pulled: bool) -> Scene:
         speed = json.loads(record.attrs["settings"])["v0"]
         length, half_width = np.ptp(X[:, 1]), np.ptp(X[:, 0]) / 2
         v0[:, 0] = speed * (0.5 - x[:, 1] / length) * np.clip(x[:, 0] / half_width, -1.0, 1.0)
-        return Scene(material, params, coarse["rho"][0], t, u, phi, intact, tip, fixed, linear_in_time(t, u), v0, None)
+        lo, hi = x[:, 0].min() - h / 2, x[:, 0].max() + h / 2
+        free = (lambda sites: (sites[:, 0] > lo) & (sites[:, 0] < hi)) if surface else False  # beyond the pulled columns: collar
+        return Scene(material, params, coarse["rho"][0], t, u, phi, intact, tip, fixed, linear_in_time(t, u), v0, None,
+                     free)
     return Scene(material, params, coarse["rho"][0], t, u, phi, intact, tip, np.zeros(len(x), bool), None, v0,
-                 linear_in_time(t, coarse["b"]))
+                 linear_in_time(t, coarse["b"]), surface)
 
 
 def crack_history(time_ps, tip, still: float = 2.5, after: int = 3) -> dict:
