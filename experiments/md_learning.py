@@ -211,8 +211,8 @@ def main():
                                 {"--surface": "phase 2 with the free-surface-corrected LPS (eq 3.18)"})
     torch.manual_seed(args.seed)
     start = time.perf_counter()
-    name = NAME + ("_surface" if args.surface else "") + ("_quick" if args.quick else "")
-    out = run_dir(name)
+    run_name = NAME + ("_surface" if args.surface else "") + ("_quick" if args.quick else "")
+    out = run_dir(run_name)
     one, data = phase_one(args.quick, out)
     t = time.perf_counter()
     two = phase_two(one["non_negative_at_best"], args.quick, out, args.surface)
@@ -239,7 +239,7 @@ def main():
             v = e[f"{kind}_rel_error" if kind == "displacement" else "damage_eq54_rel_error"]
             targets[f"{test}_{kind}_error_vs_paper"] = {"value": v, "target": paper,
                                                          "passed": v is not None and v <= paper}
-    write_metrics(name, {
+    write_metrics(run_name, {
         "wall_time_s": time.perf_counter() - start, "phase1": one, "phase2": two, "bayes": posterior,
         "targets": targets,
         "settings": {"surface_eq3_18": args.surface, "nodes": NODES, "degree": DEGREE, "alpha": 0.0, "horizons_over_h": HORIZONS,
