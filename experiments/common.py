@@ -66,9 +66,12 @@ def write_metrics(name: str, metrics: dict) -> Path:
     return path
 
 
-def quick_seed_arguments(doc: str, quick_help: str) -> argparse.Namespace:
-    """The command line of an experiment that takes ``--quick`` and ``--seed``."""
+def quick_seed_arguments(doc: str, quick_help: str, switches: dict | None = None) -> argparse.Namespace:
+    """The command line of an experiment that takes ``--quick``, ``--seed`` and the on/off
+    ``switches`` {"--name": help}."""
     parser = argparse.ArgumentParser(description=doc.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help=quick_help)
     parser.add_argument("--seed", type=int, default=0)
+    for name, text in (switches or {}).items():
+        parser.add_argument(name, action="store_true", help=text)
     return parser.parse_args()

@@ -6,6 +6,8 @@ validates the NetCDF records, ``coarse_grain`` maps particle data onto a grid (e
 ``moduli`` measures the sheet's own long-wave 2D moduli, ``periodic`` is the periodic grid sheet
 (minimum-image bonds, sparse and Fourier solves, the operator's symbol), ``kernel`` learns
 (lambda, mu, Bernstein D) at a horizon under the solvability constraint (phase 1, eqs 4.2-4.7);
-``forward`` is the dynamic PD run with the smoothed damage (eq 3.10) on a coarse grid,
-``discrepancy`` learns its s0 from the PD-MD displacement error (phase 2, by simulation) and
-``md_damage`` puts the MD crack on the coarse grid (cut coarse bonds, damage index, crack tip)."""
+``forward`` is the dynamic PD run with the smoothed damage (eq 3.10) on a coarse grid (optionally
+with ``free_surface``, the free-surface-corrected LPS of eqs 3.13-3.21), ``discrepancy`` learns its
+s0 from the PD-MD displacement error (phase 2, by simulation), ``model_error`` is a relative,
+correlated model-error term for its predictive bands and ``md_damage`` puts the MD crack on the
+coarse grid (cut coarse bonds, damage index, crack tip)."""

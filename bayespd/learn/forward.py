@@ -11,6 +11,9 @@ at the new time, damage update with the new stretch, force, kick. The prescribed
 ``moving(t)`` (e.g. the coarse-grained MD displacement of the pulled edge columns, linear in time
 between frames); the free nodes start from ``v0``. The step is ``safety`` times the Verlet limit
 2 / sqrt(lambda_max(M^-1 K)) of the intact linearised operator (damage only softens it).
+``surface``: f_i = -V_i L_i with L the free-surface-corrected LPS of paper 004 eq 3.18
+(``bayespd.learn.free_surface``: linear in u for given gamma, missing bonds as broken ones) in
+place of the exact-kinematics force.
 
 Units: A, ps, rho in g/mol per A^2 (times ``MASS``), b in eV/A^3.
 """
@@ -25,6 +28,7 @@ import scipy.sparse
 import torch
 
 from bayespd.damage import DamageIndex, SmoothStep
+from bayespd.learn.free_surface import FreeSurface
 from bayespd.nonlinear import NonlinearBonds
 from bayespd.solvers.dynamics import NumericalInstabilityError, stable_time_step
 from bayespd.validate import positive
@@ -65,11 +69,13 @@ def linear_in_time(times, values) -> Callable[[float], np.ndarray]:
 
 
 def forward_run(material, params: dict, rho, frames, s0: float | None = None, prescribed=None, moving=None,
-                v0=None, body=None, safety: float = 0.5) -> ForwardRun:
+                v0=None, body=None, safety: float = 0.5, surface=False) -> ForwardRun:
     """Integrate the module docstring's equation over [0, frames[-1]] and save u, phi at ``frames``
     (times in ps, frames[0] = 0). ``rho`` (N,) density; ``s0``: the critical stretch (None: no
     damage); ``prescribed`` (N,) bool with ``moving(t)`` -> (N, 2) displacements (only the
-    prescribed rows are read); ``v0`` (N, 2) initial velocity; ``body(t)`` -> (N, 2) force density."""
+    prescribed rows are read); ``v0`` (N, 2) initial velocity; ``body(t)`` -> (N, 2) force density;
+    ``surface``: False (the exact-kinematics LPS), True (eq 3.18, every missing lattice site beyond
+    a free surface) or ``free(sites) -> bool`` (``FreeSurface``'s: False beyond prescribed edges)."""
     frames = np.asarray(frames, float)
     if frames[0] != 0 or np.any(np.diff(frames) <= 0):
         raise ValueError("frames must start at t = 0 and increase")
@@ -87,7 +93,7 @@ def forward_run(material, params: dict, rho, frames, s0: float | None = None, pr
     dt = _time_step(material, params, mass, safety)
     per_frame = np.maximum(np.ceil(np.diff(frames) / dt).astype(int), 1)
     kin = NonlinearBonds(material)
-    law_force = kin.at(params)
+    law_force = kin.at(params) if surface is False else FreeSurface(material, params, None if surface is True else surface)
     index = DamageIndex(material.particles, material.bonds, material.bond_weight(params).detach())
     free = torch.as_tensor(~fixed)[:, None]
     m = torch.as_tensor(mass)[:, None]

@@ -8,7 +8,9 @@ the outermost node column on each side follows the coarse-grained MD displacemen
 time between frames; the gripped atoms lie beyond the grid), the other nodes start on the MD
 run's initial velocity field v_x = v0 (1/2 - y / L) clip(x / (W/2), -1, 1)
 (``bayespd.learn.md.fracture_run``). Pulse run: free edges, at rest, the coarse-grained pulse
-body force (linear in time between frames).
+body force (linear in time between frames). ``surface=True``: the free-surface-corrected LPS of
+paper 004 eq 3.18 (``bayespd.learn.free_surface``) with the missing bonds beyond the free edges and
+across the slit as broken bonds; the sites beyond the pulled columns (where the grips are) are no bonds.
 """
 from __future__ import annotations
 
@@ -26,6 +28,7 @@ from bayespd.influence import Bernstein
 from bayespd.learn.discrepancy import count_damage, relative_error, relative_mse
 from bayespd.learn.forward import forward_run, linear_in_time
 from bayespd.learn.kernel import lps_params
+from bayespd.learn.model_error import fit_relative_error
 from bayespd.learn.md_damage import broken_atom_bonds, cut_coarse_bonds, tip_height
 from bayespd.materials.lps import LPS
 
@@ -48,16 +51,18 @@ class Scene:
     moving: object
     v0: np.ndarray
     body: object
+    surface: object = False  # forward_run's: False, True or free(sites) -> bool
 
     def run(self, s0, frames=None):
         """A forward run over the first ``frames`` frames (all: None)."""
         t = self.time if frames is None else self.time[:frames]
-        return forward_run(self.material, self.params, self.rho, t, s0, self.fixed, self.moving, self.v0, self.body)
+        return forward_run(self.material, self.params, self.rho, t, s0, self.fixed, self.moving, self.v0, self.body,
+                           surface=self.surface)
 
 
-def scene(coarse, record, kernel: dict, h: float, pulled: bool) -> Scene:
+def scene(coarse, record, kernel: dict, h: float, pulled: bool, surface: bool = False) -> Scene:
     """The forward problem of a coarse record (``coarse``: the npz of the coarse graining; ``record``:
-    the atom record) with ``kernel`` = {lambda, mu, D, delta_A}."""
+    the atom record) with ``kernel`` = {lambda, mu, D, delta_A}; ``surface``: eq 3.18 (module docstring)."""
     x = coarse["nodes"]
     particles = from_points(x, np.full(len(x), h * h), h=h)
     delta = kernel["delta_A"]
@@ -76,9 +81,12 @@ def scene(coarse, record, kernel: dict, h: float, pulled: bool) -> Scene:
         speed = json.loads(record.attrs["settings"])["v0"]
         length, half_width = np.ptp(X[:, 1]), np.ptp(X[:, 0]) / 2
         v0[:, 0] = speed * (0.5 - x[:, 1] / length) * np.clip(x[:, 0] / half_width, -1.0, 1.0)
-        return Scene(material, params, coarse["rho"][0], t, u, phi, intact, tip, fixed, linear_in_time(t, u), v0, None)
+        lo, hi = x[:, 0].min() - h / 2, x[:, 0].max() + h / 2
+        free = (lambda sites: (sites[:, 0] > lo) & (sites[:, 0] < hi)) if surface else False  # beyond the pulled columns: collar
+        return Scene(material, params, coarse["rho"][0], t, u, phi, intact, tip, fixed, linear_in_time(t, u), v0, None,
+                     free)
     return Scene(material, params, coarse["rho"][0], t, u, phi, intact, tip, np.zeros(len(x), bool), None, v0,
-                 linear_in_time(t, coarse["b"]))
+                 linear_in_time(t, coarse["b"]), surface)
 
 
 def crack_history(time_ps, tip, still: float = 2.5, after: int = 3) -> dict:
@@ -141,26 +149,41 @@ def s0_posterior(sc: Scene, half: int, bounds, draws: int = 200, seed: int = 0) 
     marginalised under p(sigma) ~ 1/sigma: p(s0 | data) ~ SSE(s0)^(-n/2); prior uniform in log s0.
     Two readings of n: every nodal value independent ("iid", n = 2 x nodes x frames: ignores the
     correlation of model error over space, so too narrow) and one independent value per frame
-    ("per_frame", n = frames: the error field of a frame moves as one). Grid: 61 points evenly in
-    log over the prior's ``bounds``, one full-record run each. Predictive: ``draws`` s0 from the grid
-    weights, each run plus its sigma(s0) noise per value; bands over frames half .. end."""
+    ("per_frame", n = frames: the error field of a frame moves as one). "relative_*": the same with
+    e's sd r s_t relative to the frame's rms PD displacement s_t(s0) (the error grows with the field):
+    p(s0 | data) ~ SSE_rel^(-n/2) prod_t s_t^(-n / frames), SSE_rel = sum_t |e_t|^2 / s_t^2.
+    "relative_correlated": ``bayespd.learn.model_error``'s term (``_relative_correlated``). Grid:
+    61 points evenly in log over the prior's ``bounds``, one full-record run each. Predictive:
+    ``draws`` s0 from the grid weights, each run plus its noise per value (sd sigma(s0), or
+    r(s0) s_t of the predicted frame); bands over frames half .. end."""
     grid = np.exp(np.linspace(np.log(bounds[0]), np.log(bounds[1]), 61))
     free = ~sc.fixed
     runs = [sc.run(s) for s in grid]
     values = int(free.sum() * 2 * (half - 1))
     sse = np.array([((r.u[1:half, free] - sc.u[1:half, free]) ** 2).sum() for r in runs])
     sigma = np.sqrt(sse / values)
+    scale = np.array([np.sqrt((r.u[1:half, free] ** 2).mean((1, 2))) for r in runs])  # s_t, (grid, frames)
+    sse_rel = np.array([(((r.u[1:half, free] - sc.u[1:half, free]) / s[:, None, None]) ** 2).sum()
+                        for r, s in zip(runs, scale)])
     late = slice(half, None)
     data = sc.u[late][:, free]
     md_len = np.asarray(crack_history(sc.time, sc.tip)["length_A"])
     out = {}
-    for name, n in (("iid", values), ("per_frame", half - 1)):
-        logp = -0.5 * n * np.log(sse / sse.min())
+    def sd(k, relative):
+        u = runs[k].u[late][:, free]
+        return np.sqrt(sse_rel[k] / values * (u**2).mean((1, 2)))[:, None, None] if relative else sigma[k]
+
+    for name, n, relative in (("iid", values, False), ("per_frame", half - 1, False),
+                              ("relative_iid", values, True), ("relative_per_frame", half - 1, True)):
+        if relative:
+            logp = -0.5 * n * np.log(sse_rel / sse_rel.min()) - n / (half - 1) * np.log(scale).sum(1)
+        else:
+            logp = -0.5 * n * np.log(sse / sse.min())
         w = np.exp(logp - logp.max())
         w /= w.sum()
         rng = np.random.default_rng(seed)
         pick = rng.choice(len(grid), size=draws, p=w)
-        pred = np.stack([runs[k].u[late][:, free] + sigma[k] * rng.standard_normal(data.shape) for k in pick])
+        pred = np.stack([runs[k].u[late][:, free] + sd(k, relative) * rng.standard_normal(data.shape) for k in pick])
         lo, hi = np.quantile(pred, [0.05, 0.95], axis=0)
         lengths = np.stack([crack_history(sc.time, pd_tip(sc, runs[k]))["length_A"] for k in pick])
         c_lo, c_hi = np.quantile(lengths, [0.05, 0.95], axis=0)
@@ -171,5 +194,43 @@ def s0_posterior(sc: Scene, half: int, bounds, draws: int = 200, seed: int = 0) 
                      "extrapolation_band90_node_frame_coverage": float(((data >= lo) & (data <= hi)).all(-1).mean()),
                      "crack_length_band90_A": {"q05": c_lo.tolist(), "q95": c_hi.tolist()},
                      "crack_length_md_inside_band_share_of_frames": float(((md_len >= c_lo) & (md_len <= c_hi)).mean())}
+    out["relative_correlated"] = _relative_correlated(sc, runs, grid, half, data, md_len, draws, seed)
     return {"grid": grid.tolist(), "training_sse_A2": sse.tolist(), "sigma_at_best_A": float(sigma.min()),
             "values": values, **out}
+
+
+def _relative_correlated(sc: Scene, runs, grid, half: int, data, md_len, draws: int, seed: int) -> dict:
+    """The s0 posterior and 90 % bands with ``bayespd.learn.model_error``'s term: error relative to
+    each frame's rms PD displacement, exponentially correlated in space and time, (ell, tau) by
+    evidence at the best-fitting s0 on grids (h/2 .. 64 h, half a frame .. 32 frames), r marginalised."""
+    free = ~sc.fixed
+    train = slice(1, half)
+    x, t = sc.material.particles.x[free], sc.time[train]
+    residuals = [sc.u[train][:, free] - r.u[train][:, free] for r in runs]
+    scales = [np.sqrt((r.u[train][:, free] ** 2).mean((1, 2))) for r in runs]
+    best = int(np.argmin([((e / s[:, None, None]) ** 2).sum() for e, s in zip(residuals, scales)]))
+    h, step = sc.material.bonds.h, float(np.diff(sc.time).mean())
+    term, table = fit_relative_error(residuals[best], scales[best], x, t, h * 2.0 ** np.arange(-1, 7),
+                                     step * 2.0 ** np.arange(-1, 6))
+    logp = np.array([term.log_evidence(e, s) for e, s in zip(residuals, scales)])
+    w = np.exp(logp - logp.max())
+    w /= w.sum()
+    values = residuals[0].size
+    rng = np.random.default_rng(seed)
+    pick = rng.choice(len(grid), size=draws, p=w)
+    pred = []
+    for k in pick:
+        u = runs[k].u[half:][:, free]
+        r = np.sqrt(term.quadratic(residuals[k], scales[k]) / rng.chisquare(values))
+        pred.append(u + term.draw(rng, np.sqrt((u**2).mean((1, 2))), r, 2))
+    lo, hi = np.quantile(np.stack(pred), [0.05, 0.95], axis=0)
+    lengths = np.stack([crack_history(sc.time, pd_tip(sc, runs[k]))["length_A"] for k in pick])
+    c_lo, c_hi = np.quantile(lengths, [0.05, 0.95], axis=0)
+    cdf = np.cumsum(w)
+    return {"ell_A": term.ell, "tau_ps": term.tau, "log_evidence_ell_by_tau": table.tolist(),
+            "r_at_best": float(np.sqrt(term.quadratic(residuals[best], scales[best]) / values)),
+            "s0_q05": float(grid[np.searchsorted(cdf, 0.05)]), "s0_median": float(grid[np.searchsorted(cdf, 0.5)]),
+            "s0_q95": float(grid[np.searchsorted(cdf, 0.95)]), "weight_at_grid_ends": float(w[0] + w[-1]),
+            "extrapolation_band90_node_frame_coverage": float(((data >= lo) & (data <= hi)).all(-1).mean()),
+            "crack_length_band90_A": {"q05": c_lo.tolist(), "q95": c_hi.tolist()},
+            "crack_length_md_inside_band_share_of_frames": float(((md_len >= c_lo) & (md_len <= c_hi)).mean())}
