@@ -49,9 +49,13 @@ class _FormGradient(torch.autograd.Function):
     def forward(ctx, form, v, u, *params):
         ctx.form = form
         ctx.save_for_backward(v, u, *params)
+        needed = ctx.needs_input_grad[3:]  # only these become leaves: a parameter that needs
+        # no gradient stays a constant (a fixed horizon: LPS's family is then its kept one)
         with torch.enable_grad():
-            leaves = _leaves(*params)
-            return tuple(_grad(form(v.detach(), u.detach(), *leaves), leaves))
+            leaves = [p.detach().requires_grad_(need) for p, need in zip(params, needed)]
+            wanted = [x for x, need in zip(leaves, needed) if need]
+            grads = iter(_grad(form(v.detach(), u.detach(), *leaves), wanted) if wanted else ())
+            return tuple(next(grads) if need else torch.zeros_like(x) for x, need in zip(leaves, needed))
 
     @staticmethod
     def backward(ctx, *w):
