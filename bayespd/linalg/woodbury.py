@@ -182,9 +182,13 @@ def _cholesky(X: np.ndarray, message: str):
     return factor
 
 
+GROWTH = 1.25  # the columns' buffer grows to this times the rows it must hold
+
+
 class _Columns:
     """The columns of rows (of an n x n operator) touched so far, as rows of a buffer in the
-    order the rows were first touched (allocated as they come, up to ``capacity`` rows, then doubling);
+    order the rows were first touched (grown by GROWTH as they come, from 64 rows, at most
+    ``capacity`` while they fit: a run holds ~1.25 k rows, not max_rank);
     ``_new(rows)`` makes the columns of new rows, (len(rows), width); ``gram_inverse()`` is
     W_R^-1 in ``order``, bordered as rows join with the blocks ``_bordering(old)`` of W_R."""
 
@@ -221,7 +225,8 @@ class _Columns:
         new = np.unique(rows[~self._touched[rows]])
         if len(new):
             if self.k + len(new) > len(self._rows):
-                size = self.capacity if self.k + len(new) <= self.capacity else 2 * (self.k + len(new))
+                need = self.k + len(new)
+                size = max(need, min(max(int(GROWTH * need), 64), self.capacity))
                 grown = np.empty((size, self.width))
                 grown[: self.k] = self._rows[: self.k]
                 self._rows = grown
