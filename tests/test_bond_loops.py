@@ -27,14 +27,15 @@ def geometry(bonds, dtype=torch.float64):
 
 
 def numpy_bond(u, bonds, dtype=np.float64):
-    """(y, |y|, e) in the kernels' order of operations, vectorised: eta = u_j - u_i,
-    y = eta + xi, |y| = sqrt(sum y^2) (correctly rounded), e = eta . (y + xi) / (|y| + |xi|)."""
+    """(y, |y|, e, eta . (y + xi)) in the kernels' order of operations, vectorised:
+    eta = u_j - u_i, y = eta + xi, |y| = sqrt(sum y^2) (correctly rounded),
+    e = eta . (y + xi) / (|y| + |xi|)."""
     xi, L = bonds.xi.astype(dtype), bonds.length.astype(dtype)
     eta = u[bonds.j] - u[bonds.i]
     y = eta + xi
     r = np.sqrt(sum(y[:, a] * y[:, a] for a in range(y.shape[1])))
     num = sum(eta[:, a] * (y[:, a] + xi[:, a]) for a in range(y.shape[1]))
-    return y, r, num / (r + L)
+    return y, r, num / (r + L), num
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
@@ -47,7 +48,7 @@ def test_stretch_is_the_reference_formula_bit_for_bit(dim, dtype):
     u = np.random.default_rng(dim).normal(scale=0.05, size=(p.n, dim)).astype(dtype)
     ends, xi, length = geometry(bonds, torch.float64 if dtype == np.float64 else torch.float32)
     s = bond_loops.stretch(torch.as_tensor(u), ends, xi, length).numpy()
-    y, r, e = numpy_bond(u, bonds, dtype)
+    y, r, e, _ = numpy_bond(u, bonds, dtype)
     assert s.dtype == dtype
     np.testing.assert_array_equal(s, e / bonds.length.astype(dtype))
     if dtype == np.float64:
@@ -56,9 +57,13 @@ def test_stretch_is_the_reference_formula_bit_for_bit(dim, dtype):
 
 @pytest.mark.parametrize("dim", [2, 3])
 def test_pmb_force_is_the_bond_sum_bit_for_bit_and_conserves_momentum(dim):
-    """f_i += k mu e / |y| y, f_j -= the same, bond by bond in order: equal bit for bit to
-    that sum done in Python floats (the same IEEE operations); sum_i f_i = 0 (Newton's third
-    law, to rounding); a broken bond (k mu = 0) adds exactly nothing; mu = None is mu = 1."""
+    """f_i += t y, f_j -= the same, t = k mu e / |y| taken as k mu num / ((|y| + |xi|) |y|)
+    (num = eta . (y + xi), one division), bond by bond in order: equal bit for bit to that
+    sum done in Python floats (the same IEEE operations), and to the two-division
+    k mu (num / (|y| + |xi|)) / |y| to (4 + n) eps sum |terms| for an entry of n terms (three
+    roundings of t either way and one of its product with y: 4 eps a term; each sum's n - 1
+    additions: (n - 1) eps/2 sum |terms| each); sum_i f_i = 0 (Newton's
+    third law, to rounding); a broken bond (k mu = 0) adds exactly nothing; mu = None is mu = 1."""
     p, bonds = plate(dim)
     rng = np.random.default_rng(10 + dim)
     u = rng.normal(scale=0.05, size=(p.n, dim))
@@ -67,18 +72,25 @@ def test_pmb_force_is_the_bond_sum_bit_for_bit_and_conserves_momentum(dim):
     mu[::5] = 0.0
     ends, xi, length = geometry(bonds)
     f = bond_loops.pmb_force(torch.as_tensor(u), ends, xi, length, torch.as_tensor(k), torch.as_tensor(mu)).numpy()
-    y, r, e = numpy_bond(u, bonds)
-    ref = np.zeros_like(u)
+    y, r, e, num = numpy_bond(u, bonds)
+    ref, two = np.zeros_like(u), np.zeros_like(u)
+    size, count = np.zeros_like(u), np.zeros_like(u)  # sum of |terms| and their number per entry
     for b in range(bonds.n):
         kb = float(k[b] * mu[b])
         if kb == 0.0:
             continue
-        t = kb * float(e[b]) / float(r[b])
+        t, t2 = kb * float(num[b]) / ((float(r[b]) + float(bonds.length[b])) * float(r[b])), kb * float(e[b]) / float(r[b])
         for a in range(dim):
             fb = float(y[b, a]) * t
             ref[bonds.i[b], a] += fb
             ref[bonds.j[b], a] -= fb
+            two[bonds.i[b], a] += float(y[b, a]) * t2
+            two[bonds.j[b], a] -= float(y[b, a]) * t2
+            for end in (bonds.i[b], bonds.j[b]):
+                size[end, a] += abs(fb)
+                count[end, a] += 1
     np.testing.assert_array_equal(f, ref)
+    assert np.all(np.abs(f - two) <= (4 + count) * np.finfo(float).eps * size)
     np.testing.assert_allclose(f.sum(0), 0.0, atol=64 * np.finfo(float).eps * np.abs(f).max())
     intact = bond_loops.pmb_force(torch.as_tensor(u), ends, xi, length, torch.as_tensor(k), None)
     ones = bond_loops.pmb_force(torch.as_tensor(u), ends, xi, length, torch.as_tensor(k), torch.ones(bonds.n))

@@ -86,6 +86,9 @@ class NodeBlocks:
     maps: dict = field(default_factory=dict, repr=False)
 
 
+RESTRICTED = 4  # sub-patterns a Pattern keeps (``restrict``)
+
+
 @dataclass(eq=False)
 class Pattern:
     """A fixed sparsity pattern of an n x n matrix, entries in CSC order (column-major).
@@ -104,6 +107,7 @@ class Pattern:
     cols_t: torch.Tensor = field(init=False, repr=False)
     _strict: bool = field(init=False, repr=False)  # no duplicate entries
     _symbolic: object = field(default=None, init=False, repr=False)  # CHOLMOD's analysis
+    _restricted: dict = field(default_factory=dict, init=False, repr=False)  # ``restrict``'s latest
 
     def __post_init__(self):
         self.rows = np.asarray(self.rows, dtype=np.int64)
@@ -127,7 +131,7 @@ class Pattern:
     def __getstate__(self):
         """Pickled without CHOLMOD's analysis (it does not pickle): the next factorisation
         redoes it, so a scene can be sent to worker processes after it has solved."""
-        return {**self.__dict__, "_symbolic": None}
+        return {**self.__dict__, "_symbolic": None, "_restricted": {}}
 
     @property
     def nnz(self) -> int:
@@ -166,11 +170,19 @@ class Pattern:
         return torch.zeros_like(x, dtype=contrib.dtype).index_add(0, self.rows_t, contrib)
 
     def restrict(self, keep: np.ndarray):
-        """Sub-pattern on the dofs where ``keep`` is true, and which entries it keeps."""
-        index = np.cumsum(keep) - 1
-        entries = keep[self.rows] & keep[self.cols]
-        sub = Pattern(index[self.rows[entries]], index[self.cols[entries]], int(keep.sum()))
-        return sub, np.flatnonzero(entries)
+        """Sub-pattern on the dofs where ``keep`` is true, and which entries it keeps: the same
+        objects for the same ``keep`` among the latest RESTRICTED ones (read-only; the bodies of
+        an ensemble's realisations, on one material, share them: ~50 MB each at 10k particles)."""
+        keep = np.asarray(keep, dtype=bool)
+        key = keep.tobytes()
+        if key not in self._restricted:
+            index = np.cumsum(keep) - 1
+            entries = keep[self.rows] & keep[self.cols]
+            sub = Pattern(index[self.rows[entries]], index[self.cols[entries]], int(keep.sum()))
+            if len(self._restricted) >= RESTRICTED:
+                self._restricted.pop(next(iter(self._restricted)))
+            self._restricted[key] = (sub, np.flatnonzero(entries))
+        return self._restricted[key]
 
     def factorize(self, values: torch.Tensor, backend: str | None = None,
                   ordering: str | None = None) -> "Factor":

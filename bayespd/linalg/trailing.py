@@ -30,14 +30,15 @@ _ORDERINGS: dict = {}  # pattern digest -> METIS permutation (the latest four; M
 _FACTORS: dict = {}  # digest of (M, last) -> TrailingFactor (the latest two)
 
 
-def _digest(*arrays) -> str:
-    digest = hashlib.sha1()
+def digest(*arrays) -> str:
+    """SHA-1 of the arrays' bytes (C order), for caches keyed by value."""
+    sha = hashlib.sha1()
     for a in arrays:
-        digest.update(np.ascontiguousarray(a).tobytes())
-    return digest.hexdigest()
+        sha.update(np.ascontiguousarray(a).tobytes())
+    return sha.hexdigest()
 
 
-def _kept(cache: dict, size: int, key: str, make):
+def kept(cache: dict, size: int, key: str, make):
     """``cache[key]``, made by ``make()`` when missing; the oldest entry goes beyond ``size``."""
     if key not in cache:
         if len(cache) >= size:
@@ -49,7 +50,7 @@ def _kept(cache: dict, size: int, key: str, make):
 def _metis_order(A: sp.csc_matrix) -> np.ndarray:
     """CHOLMOD's METIS permutation of A, kept per sparsity pattern: many runs in a process
     (the realisations of an ensemble) start from the same pattern."""
-    return _kept(_ORDERINGS, 4, _digest(np.asarray(A.shape), A.indptr, A.indices),
+    return kept(_ORDERINGS, 4, digest(np.asarray(A.shape), A.indptr, A.indices),
                  lambda: sparse.cholmod.analyze(A, mode="supernodal", ordering_method="metis").P())
 
 
@@ -60,7 +61,7 @@ def shared(M, last: np.ndarray) -> "TrailingFactor":
     read-only."""
     M = sp.csc_matrix(M, dtype=np.float64)
     last = np.asarray(last, dtype=np.int64)
-    return _kept(_FACTORS, 2, _digest(np.asarray(M.shape), M.indptr, M.indices, M.data, last),
+    return kept(_FACTORS, 2, digest(np.asarray(M.shape), M.indptr, M.indices, M.data, last),
                  lambda: TrailingFactor(M, last))
 
 

@@ -94,7 +94,7 @@ class LocallyUpdated:
     inverse, no solve per row; a change outside it asks for a new A0; CHOLMOD only)."""
 
     def __init__(self, A0, max_rank: int = 512, groups=None, region=None):
-        self.A0, self.delta, self.max_rank = sp.csr_matrix(A0), None, int(max_rank)
+        self.A0, self.delta, self.max_rank = shared_operator(A0), None, int(max_rank)
         self.shape = self.A0.shape
         if groups is not None and np.shape(groups) != (self.shape[0],):
             raise ValueError(f"groups must hold one label per row ({self.shape[0]})")
@@ -152,6 +152,24 @@ class LocallyUpdated:
         return Factor(base.corrected(correct))
 
 
+_OPERATORS: dict = {}  # digest -> the read-only CSR operator (the latest two)
+
+
+def shared_operator(A0) -> sp.csr_matrix:
+    """A0 as a read-only CSR matrix, the same object for every A0 equal to it bit for bit
+    among the latest two of the process: the runs of an ensemble that start from one operator
+    (``trailing.shared``) then hold one copy of it, not one each (15 MB at 10k particles)."""
+    A = sp.csr_matrix(A0)
+    key = trailing.digest(np.asarray(A.shape), A.indptr, A.indices, A.data)
+
+    def frozen():
+        for a in (A.data, A.indices, A.indptr):
+            a.setflags(write=False)
+        return A
+
+    return trailing.kept(_OPERATORS, 2, key, frozen)
+
+
 def _cholesky(X: np.ndarray, message: str):
     """scipy's (lower) Cholesky factor of the symmetric X (overwritten); NotPositiveDefiniteError
     with ``message`` when X is not positive definite."""
@@ -164,9 +182,13 @@ def _cholesky(X: np.ndarray, message: str):
     return factor
 
 
+GROWTH = 1.25  # the columns' buffer grows to this times the rows it must hold
+
+
 class _Columns:
     """The columns of rows (of an n x n operator) touched so far, as rows of a buffer in the
-    order the rows were first touched (allocated as they come, up to ``capacity`` rows, then doubling);
+    order the rows were first touched (grown by GROWTH as they come, from 64 rows, at most
+    ``capacity`` while they fit: a run holds ~1.25 k rows, not max_rank);
     ``_new(rows)`` makes the columns of new rows, (len(rows), width); ``gram_inverse()`` is
     W_R^-1 in ``order``, bordered as rows join with the blocks ``_bordering(old)`` of W_R."""
 
@@ -203,7 +225,8 @@ class _Columns:
         new = np.unique(rows[~self._touched[rows]])
         if len(new):
             if self.k + len(new) > len(self._rows):
-                size = self.capacity if self.k + len(new) <= self.capacity else 2 * (self.k + len(new))
+                need = self.k + len(new)
+                size = max(need, min(max(int(GROWTH * need), 64), self.capacity))
                 grown = np.empty((size, self.width))
                 grown[: self.k] = self._rows[: self.k]
                 self._rows = grown

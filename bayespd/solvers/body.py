@@ -59,8 +59,13 @@ class LoadedBody:
             raise ValueError("nothing is recorded: pass loaded= (the particles whose reaction is "
                              "recorded) with at least one particle")
         self._fixed = self.constraints.fixed_particles
-        self._floating = FloatingPieces(self.bonds, self._fixed)
         self._patterns = {}
+
+    @cached_property
+    def _floating(self) -> FloatingPieces:
+        """The body's own tracker (``active`` without ``pieces``), made on first use: a fracture
+        run asks with its own (``floating_pieces``)."""
+        return FloatingPieces(self.bonds, self._fixed)
 
     @property
     def n_bonds(self) -> int:

@@ -112,11 +112,13 @@ def velocity_verlet(force, mass, u0, dt: float, steps: int, v0=None, damping: fl
     saves = _Saver(u, save_every)
     saves_v = _Saver(v, save_every)
     compiled = verlet_loops.usable(u, v, f, m)
+    if compiled and steps:
+        drifted = verlet_loops.drift(u, v, f, m, dt, damping)
     for n in range(1, steps + 1):
-        if compiled:
-            v_half, u_new = verlet_loops.drift(u, v, f, m, dt, damping)
+        if compiled:  # one pass: this step's kick and energies, the next step's drift
+            v_half, u_new = drifted
             f_new = force(u_new)
-            v, work, kinetic[n] = verlet_loops.kick(v_half, f_new, m, dt, damping, f, u_new, u)
+            v, work, kinetic[n], drifted = verlet_loops.kick(v_half, f_new, m, dt, damping, f, u_new, u, n < steps)
             potential[n] = potential[n - 1] - work
         else:
             v_half = v + 0.5 * dt * (f / m - damping * v)

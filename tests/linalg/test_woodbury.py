@@ -226,3 +226,29 @@ def test_fracture_with_a_zone_follows_fracture_without(plate, tangent, where):
     assert torch.allclose(a.u, b.u, rtol=0, atol=1e-9 * float(a.u.abs().max()))
     with pytest.raises(ValueError, match="mask of the"):
         frac.run(lams, 1.0, seed=5, zone=zone[:-1])
+
+
+def test_runs_on_one_material_share_their_operator_and_its_pattern():
+    """Two bodies of one scene (two draws of an ensemble) hold one copy of what they share: the
+    sub-pattern on the same active dofs (``Pattern.restrict``: the same objects) and the
+    starting operator of their LocallyUpdated (``woodbury.shared_operator``: one read-only
+    CSR for operators equal bit for bit); an operator that differs gets its own, and solves
+    with either are those of a fresh factor to 1e-10."""
+    plate = scene()
+    first, second = (plate.at({k: PARAMS[k] for k in plate.param_names}) for _ in range(2))
+    intact = torch.ones(first.n_bonds)
+    active = first.active(intact)
+    assert first._restricted(active)[0] is second._restricted(active)[0]
+    assert first._restricted(active)[1] is second._restricted(active)[1]
+    A, B = (LocallyUpdated(b.operator(intact, active)) for b in (first, second))
+    assert A.A0 is B.A0 and not A.A0.data.flags.writeable
+    with pytest.raises(ValueError):
+        A.A0.data[0] = 0.0
+    cut = broken(first, np.flatnonzero(np.abs(first.particles.x[first.bonds.i, 1] - SIDE / 2) < 1)[:10])
+    C = LocallyUpdated(second.operator(cut, active))
+    assert C.A0 is not A.A0
+    s, b = np.full(len(active), 2.0), 1e-3
+    rhs = np.random.default_rng(1).standard_normal(len(active))
+    for M, matrix in ((A, first.operator(intact, active)), (C, second.operator(cut, active))):
+        exact = spd_factor(sp.diags(s) + b * matrix).solve(rhs)
+        assert np.abs(shifted_factor(M, s, b).solve(rhs) - exact).max() <= 1e-10 * np.abs(exact).max()
