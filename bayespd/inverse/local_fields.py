@@ -90,20 +90,15 @@ def harmonic_load_field(scene, margin: float):
     unknown[free_zone] = free.sum() + zones
     m = int(unknown.max()) + 1
     value = np.where(one, 1.0, 0.0)
-    L = sp.lil_matrix((m, m))
-    rhs = np.zeros(m)
-    for a, b in edges:
-        ua, ub = unknown[a], unknown[b]
-        for u_, v_, other in ((ua, ub, b), (ub, ua, a)):
-            if u_ < 0 or u_ == v_:
-                continue
-            L[u_, u_] += 1.0
-            if v_ >= 0:
-                L[u_, v_] -= 1.0
-            else:
-                rhs[u_] += value[other]
+    ends = np.concatenate([edges, edges[:, ::-1]])  # each edge seen from both ends (row, other)
+    row, col = unknown[ends[:, 0]], unknown[ends[:, 1]]
+    ends, row, col = ends[(row >= 0) & (row != col)], row[(row >= 0) & (row != col)], col[(row >= 0) & (row != col)]
+    inner = col >= 0
+    L = sp.csr_matrix((np.concatenate([np.ones(len(row)), -np.ones(inner.sum())]),
+                       (np.concatenate([row, row[inner]]), np.concatenate([row, col[inner]]))), shape=(m, m))
+    rhs = np.bincount(row[~inner], weights=value[ends[~inner, 1]], minlength=m)
     s = value.copy()
-    s[unknown >= 0] = spla.spsolve(L.tocsr(), rhs)[unknown[unknown >= 0]]
+    s[unknown >= 0] = spla.spsolve(L, rhs)[unknown[unknown >= 0]]
     total = scene.force.numpy().sum(0)
     return _at_particles(x, s[:, None] * (total / np.linalg.norm(total))[None, :], p.h)
 

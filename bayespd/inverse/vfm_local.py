@@ -35,7 +35,8 @@ def neighbours(particles):
     index = np.round((x - x.min(0)) / h).astype(np.int64)
     if np.abs(index * h + x.min(0) - x).max() > 1e-6 * h:
         raise ValueError("the local virtual work needs particles on one regular grid of spacing h "
-                         "(a DIC or FE grid, e.g. from bp.read_field)")
+                         "(a DIC or FE grid, e.g. from bp.read_field); for scattered particles use the PD "
+                         "virtual work: vfm_defaults.estimate(..., work='pd')")
     lookup = {tuple(k): i for i, k in enumerate(index)}
     return lambda offset: np.array([lookup.get(tuple(k), -1) for k in index + np.asarray(offset)])
 

@@ -137,3 +137,9 @@ def test_fe_beam_within_half_a_percent(nu):
     for k in ("K", "G"):
         assert abs(res.params[k] / truth[k] - 1) < 5e-3
 
+
+
+def test_scattered_particles_are_refused_naming_the_pd_work():
+    x = np.random.default_rng(0).uniform(0, 10, (50, 2))
+    with pytest.raises(ValueError, match="regular grid.*work='pd'"):
+        gradient_operator(bp.from_points(x, np.ones(50), h=1.0))
