@@ -13,6 +13,8 @@ particles and from *rough* boundary particles (:func:`rough_boundary`):
   ``margin`` of every loaded one and constant (free) on each connected zone within ``margin``
   of a rough boundary: W*_ext = |F|, its strain is spread as evenly as the geometry allows
   (least Dirichlet energy) and vanishes where the data cannot be trusted;
+Particles without data (gaps in a DIC field) are avoided in the same way.
+
 * hats prod_a max(0, 1 - |x_a - c_a| / size) e_k on a grid of nodes ``size`` apart, each kept
   when no constrained, loaded or rough particle lies within ``margin`` of its support: a basis
   of piecewise-bilinear fields in which ``vfm_noise``'s weighted least squares finds the
@@ -46,13 +48,17 @@ def rough_boundary(particles) -> np.ndarray:
     return np.array([tuple(row) not in straight for row in missing])
 
 
-def _busy(scene):
+def _busy(scene, unmeasured=None):
+    """(constrained, loaded, avoided) particle masks; avoided: rough boundary or ``unmeasured``."""
     loaded = np.abs(scene.force.numpy()).sum(1) > 0
     fixed = scene.constraints.fixed_particles
     if not fixed.any() or not loaded.any() or not np.any(scene.force.numpy().sum(0)):
         raise ValueError("the default VFM fields need a scene with Dirichlet particles and a "
                          "non-zero total load: pass fields= for displacement-controlled scenes")
-    return fixed, loaded, rough_boundary(scene.particles)
+    avoided = rough_boundary(scene.particles)
+    if unmeasured is not None:
+        avoided = avoided | (np.asarray(unmeasured, bool) & ~fixed)
+    return fixed, loaded, avoided
 
 
 def _at_particles(x_particles, values, h):
@@ -68,11 +74,12 @@ def _at_particles(x_particles, values, h):
     return u
 
 
-def harmonic_load_field(scene, margin: float):
-    """u*_0 = s d of the module docstring, as a callable at the scene's particles."""
+def harmonic_load_field(scene, margin: float, unmeasured=None):
+    """u*_0 = s d of the module docstring, as a callable at the scene's particles; particles
+    marked ``unmeasured`` (N,) are avoided like a rough boundary."""
     p = scene.particles
     x, n = p.x, p.n
-    fixed, loaded, rough = _busy(scene)
+    fixed, loaded, rough = _busy(scene, unmeasured)
     near = [cKDTree(x[m]).query(x)[0] <= margin if m.any() else np.zeros(n, bool) for m in (fixed, loaded, rough)]
     zero, one, free_zone = near
     if np.any(zero & one):
@@ -103,11 +110,12 @@ def harmonic_load_field(scene, margin: float):
     return _at_particles(x, s[:, None] * (total / np.linalg.norm(total))[None, :], p.h)
 
 
-def hat_fields(scene, size: float, margin: float) -> list:
-    """The hats of the module docstring (one per kept node and component)."""
+def hat_fields(scene, size: float, margin: float, unmeasured=None) -> list:
+    """The hats of the module docstring (one per kept node and component), also kept off the
+    particles marked ``unmeasured``."""
     p = scene.particles
     positive("size", size, "give the hats' node spacing")
-    fixed, loaded, rough = _busy(scene)
+    fixed, loaded, rough = _busy(scene, unmeasured)
     avoid = cKDTree(p.x[fixed | loaded | rough])
     lo, hi = p.lower(), p.upper()
     axes = [np.arange(lo[a], hi[a] + size, size) for a in range(p.dim)]
@@ -130,9 +138,10 @@ def _hat(centre, size, component):
     return u
 
 
-def local_fields(scene, margin: float | None = None, size: float | None = None) -> list:
-    """[harmonic load field] + hats (module docstring); defaults margin = 4 h, size = 8 h."""
+def local_fields(scene, margin: float | None = None, size: float | None = None, unmeasured=None) -> list:
+    """[harmonic load field] + hats (module docstring); defaults margin = 4 h, size = 8 h;
+    ``unmeasured`` (N,): particles without data (DIC gaps), avoided like a hole's staircase."""
     h = scene.particles.h
     margin = 4 * h if margin is None else positive("margin", margin, "give a distance")
     size = 8 * h if size is None else size
-    return [harmonic_load_field(scene, margin)] + hat_fields(scene, size, margin)
+    return [harmonic_load_field(scene, margin, unmeasured)] + hat_fields(scene, size, margin, unmeasured)

@@ -39,7 +39,7 @@ from scipy.spatial import cKDTree
 import bayespd as bp
 from bayespd.inverse import virtual_fields as vf
 from bayespd.inverse.local_fields import local_fields
-from bayespd.inverse.vfm import VFMResult, VirtualWork, identify
+from bayespd.inverse.vfm import VFMResult, VirtualWork, identify, measured
 from bayespd.inverse.vfm_local import LocalWork
 from bayespd.inverse.vfm_noise import MAX_SE, warn_if_noisy, weighted_identify
 from bayespd.validate import count, positive
@@ -193,7 +193,9 @@ def _refuse_exactly_determined(fields):
 def _local_estimate(scene, u, observed, sigma, fields, size, margin, max_se) -> VFMResult:
     """``estimate(work="local")``: one closed form (or noise-weighted closed form) on the local work."""
     if fields is None:  # noisy data: hats 4 h apart bring the weighting nearer the noise-optimal fields
-        fields = local_fields(scene, margin, size if size is not None or sigma is None else 4 * scene.particles.h)
+        unmeasured = ~measured(scene.particles.x, u, observed)[1].all(1)
+        fields = local_fields(scene, margin, size if size is not None or sigma is None else 4 * scene.particles.h,
+                              unmeasured if unmeasured.any() else None)
     _refuse_exactly_determined(fields)
     work = LocalWork(scene, fields, {"delta": scene.material.bonds.delta_max})
     if sigma is None:
