@@ -7,9 +7,10 @@ and model spread (``vfm_noise``), and the Cramer-Rao bound of the PD model on th
 depend on E (the field scales as 1 / E and so does the noise), so E is varied only to show it.
 
     python benchmarks/vfm_noise.py [--geometry beam plate] [--nu 0.15 0.3 0.37 0.45] [--noise 0 0.01]
-                                   [--clearance MM --size MM] [--name vfm_noise]
+                                   [--clearance MM --size MM] [--work local|pd] [--name vfm_noise]
 
-``--clearance``/``--size`` go to ``estimate`` (default: its own). Writes runs/<name>/metrics.json.
+``--clearance``/``--size``/``--work`` go to ``estimate`` (default: its own; ``--work pd`` gives
+the figures recorded before the local work). Writes runs/<name>/metrics.json.
 """
 from __future__ import annotations
 
@@ -98,12 +99,15 @@ def main():
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--clearance", type=float)
     ap.add_argument("--size", type=float)
+    ap.add_argument("--work", choices=["local", "pd"], default="local",
+                    help="estimate's virtual work (pd: the default before issue 30's local work)")
     ap.add_argument("--name", default="vfm_noise")
     args = ap.parse_args()
     start, rows = time.perf_counter(), []
     for geometry in args.geometry:
         for nu in args.nu:
-            rows += run(geometry, nu, args.noise, args.seed, {"clearance": args.clearance, "size": args.size})
+            rows += run(geometry, nu, args.noise, args.seed, {"clearance": args.clearance, "size": args.size,
+                                                               "work": args.work})
     targets = {}
     for level in args.noise:
         sel = [r for r in rows if r["noise"] == level]

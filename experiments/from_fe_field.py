@@ -22,6 +22,7 @@ Writes runs/from_fe_field[_beam|_plate|_quick]/ (metrics.json with per-target pa
 after every case; error_vs_time.png). A VFM that finds no positive (K, G) counts as failed.
 
     python experiments/from_fe_field.py [--materials N] [--geometry beam|plate|both] [--noise 0 0.01] [--quick] [--no-corrected]
+                                        [--vfm-only] [--vfm local|pd]
 """
 from __future__ import annotations
 
@@ -138,19 +139,32 @@ def scene_of(field, geometry: str, delta: float, surface: bool = False):
                     field.observation)
 
 
-def calibrate(path, geometry: str, sigma: float, term=None, seed: int = 0, methods=METHODS):
+def vfm_estimate(field, geometry: str, u, sigma: float, work: str = "local") -> dict:
+    """The VFM defaults (``work="local"``); ``work="pd"``: the PD virtual work as before issue 30's
+    local work (m chosen by the residual; for the plate, whose default bumps all meet the hole, the
+    clamp or the load, the load field and bumps clear of them by 3.5 mm)."""
+    sc = scene_of(field, geometry, (5 if work == "pd" else 3) * field.particles.h)
+    if work == "local":
+        res = estimate(sc, u, sigma=sigma or None)
+    else:
+        fields = None if geometry == "beam" else [load_field(sc)] + interior_bumps((6.5, 0), (15.5, 20), (1, 4), 3.5) \
+            + interior_bumps((24.5, 0), (37.5, 20), (2, 4), 3.5)
+        res = estimate(sc, u, sigma=sigma or None, fields=fields, work="pd", ms=(2, 3, 4) if geometry == "beam" else (2, 3))
+    return {**res.params, "se": res.extra.get("se")}
+
+
+def calibrate(path, geometry: str, sigma: float, term=None, seed: int = 0, methods=METHODS, vfm_work: str = "local"):
     field, clock = read(path, geometry), [time.perf_counter()]
     p, y, top, u = field.particles, field.y, float(np.nanmax(np.abs(field.y))), np.full((field.particles.n, 2), np.nan)
     u[field.observation.index[:, 0].numpy()[field.valid[:, 0]]] = y[field.valid[:, 0]]
-    sc = scene_of(field, geometry, 5 * p.h)
-    fields = None if geometry == "beam" else [load_field(sc)] + interior_bumps((6.5, 0), (15.5, 20), (1, 4), 3.5) \
-        + interior_bumps((24.5, 0), (37.5, 20), (2, 4), 3.5)  # bumps clear of the hole, clamp and load by 3.5 mm
     try:
-        vfm = estimate(sc, u, sigma=sigma or None, fields=fields, ms=(2, 3, 4) if geometry == "beam" else (2, 3)).params
+        vfm = vfm_estimate(field, geometry, u, sigma, vfm_work)
     except ValueError as error:  # no positive (K, G) from noisy data: start from E = 1e4, nu = 0.3
         vfm = dict(zip(("K", "G"), map(float, bp.moduli_from_young(1e4, 0.3))), failed=str(error))
     clock.append(time.perf_counter())
     out, start, delta = {"vfm": vfm}, {k: vfm[k] for k in ("K", "G")}, 3 * p.h
+    if methods == ("vfm",):
+        return {"vfm": {**vfm, "wall_time_s": clock[1] - clock[0]}}
     scale = sigma or 0.01 * top
     for name, surface in (("tikhonov", False), ("tikhonov_corrected", True))[:2 if "tikhonov_corrected" in methods else 1]:
         tik = tikhonov(scene_of(field, geometry, delta, surface), y, start, fixed={"delta": delta}, mask=field.mask,
@@ -216,13 +230,16 @@ def main():
     ap.add_argument("--quick", action="store_true", help="one material, the plate only")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-corrected", action="store_true", help="skip the Tikhonov with the surface correction")
+    ap.add_argument("--vfm-only", action="store_true", help="the VFM alone (no Tikhonov, no Bayesian fit, no error term)")
+    ap.add_argument("--vfm", choices=["local", "pd"], default="local", help="the VFM's virtual work (pd: before issue 30's fix)")
     args = ap.parse_args()
-    methods = tuple(m for m in METHODS if not (args.no_corrected and m == "tikhonov_corrected"))
+    methods = ("vfm",) if args.vfm_only else tuple(m for m in METHODS if not (args.no_corrected and m == "tikhonov_corrected"))
     n = 1 if args.quick else args.materials
     rng = np.random.default_rng(args.seed)
     materials = [(float(rng.uniform(500, 100000)), float(rng.uniform(0.15, 0.45))) for _ in range(n)]
     geometries = ["plate"] if args.quick else ["beam", "plate"] if args.geometry == "both" else [args.geometry]
-    name = "from_fe_field" + ("_quick" if args.quick else "" if args.geometry == "both" else f"_{args.geometry}")
+    name = "from_fe_field" + ("_quick" if args.quick else "" if args.geometry == "both" else f"_{args.geometry}") \
+        + ("_vfm" if args.vfm_only else "") + ("_pdwork" if args.vfm == "pd" else "")
     out, rows, terms, start = run_dir(name), [], {}, time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         for i, (E, nu) in enumerate(materials):  # material-major: a partial run covers both geometries
@@ -235,19 +252,21 @@ def main():
                     noisy = u + sigma * np.random.default_rng(1000 * i + 7).standard_normal(u.shape)
                     path = Path(tmp) / f"{geometry}_{i}.npz"
                     np.savez(path, x=x, y=y, u=noisy[:, 0].reshape(len(y), len(x)), v=noisy[:, 1].reshape(len(y), len(x)))
-                    if geometry not in terms:
+                    if geometry not in terms and not args.vfm_only:
                         terms[geometry] = error_term(path, geometry)
                         print(f"{geometry}: error term in {terms[geometry][1]:.1f} s, rank {terms[geometry][0].rank}, "
                               f"relative rms {terms[geometry][0].rms:.3g}", flush=True)
                     K, G = bp.moduli_from_young(E, nu)
                     truth = {"E": E, "nu": nu, "K": float(K), "G": float(G)}
-                    res = calibrate(path, geometry, sigma, terms[geometry][0], seed=args.seed + i, methods=methods)
+                    res = calibrate(path, geometry, sigma, terms.get(geometry, (None,))[0], seed=args.seed + i,
+                                    methods=methods, vfm_work=args.vfm)
                     score(res, truth)
                     rows.append({"geometry": geometry, "material": i, "noise": level, "truth": truth,
                                  "fe_data_s": data_s, **res})
                     print(geometry, level, f"E={E:.0f} nu={nu:.3f}", {m: {k: f"{v:+.4f}" for k, v in res[m]["rel_error"].items()}
                                                                       for m in res},
-                          "covers", res["laplace"]["covers"], {m: round(res[m]["wall_time_s"], 1) for m in res}, flush=True)
+                          "covers", res.get("laplace", {}).get("covers"), {m: round(res[m]["wall_time_s"], 1) for m in res},
+                          flush=True)
                     write_metrics(name, summary(rows, args, n, geometries, terms, time.perf_counter() - start, methods))
     plot(rows, out / "error_vs_time.png", methods)
 
@@ -258,27 +277,43 @@ def summary(rows, args, n, geometries, terms, wall, methods=METHODS) -> dict:
     worst = {k: max(abs(r[k.rsplit("_", 1)[0]]["rel_error"][k.rsplit("_", 1)[1]]) for r in rows) for k in chosen}
     targets = {k: {"value": worst[k] if np.isfinite(worst[k]) else "failed on some case", "target": t,
                    "passed": bool(worst[k] <= t)} for k, t in chosen.items()}
-    for k in ("E", "nu"):
+    for k in ("E", "nu") if "laplace" in methods else ():
         covered = [r["laplace"]["covers"][k] for r in rows]
         targets[f"laplace_{k}_covers"] = {"value": float(np.mean(covered)), "count": f"{sum(covered)} of {len(rows)}",
                                           "target": "every 90 % interval covers the FE truth",
                                           "passed": bool(all(covered))}
     return {"wall_time_s": wall, "targets": targets,
-            "laplace_median_rel_width": {k: float(np.median([r["laplace"]["rel_width"][k] for r in rows])) for k in ("E", "nu")},
+            "laplace_median_rel_width": {k: float(np.median([r["laplace"]["rel_width"][k] for r in rows]))
+                                         for k in ("E", "nu") if "laplace" in methods},
+            "worst_by_case": worst_by_case(rows, methods),
             "median_wall_time_s": {m: float(np.median([r[m]["wall_time_s"] for r in rows])) for m in methods},
             "error_terms": {g: {"wall_time_s": t, "rank": term.rank, "rms_relative": term.rms, "fe_h": FE_TERM[g],
                                 "fe_h_mesh_error": 2 * FE_TERM[g],
                                 "design_nu": TERM_NUS.tolist()} for g, (term, t) in terms.items()},
             "settings": {"materials": n, "geometries": geometries, "noise": args.noise, "seed": args.seed,
-                         "grid_h": GRID, "fe_h_data": FE_DATA, "delta_over_h": 3, "quick": args.quick},
+                         "grid_h": GRID, "fe_h_data": FE_DATA, "delta_over_h": 3, "quick": args.quick,
+                         "vfm_work": args.vfm, "methods": list(methods)},
             "runs": rows}
+
+
+def worst_by_case(rows, methods) -> dict:
+    """The worst |relative error| of each method's estimates per geometry and noise level, and the
+    number of failed (no positive moduli) cases."""
+    out = {}
+    for key in sorted({(r["geometry"], r["noise"]) for r in rows}):
+        case = [r for r in rows if (r["geometry"], r["noise"]) == key]
+        out[f"{key[0]}_noise_{key[1]:g}"] = {
+            m: {**{k: max(abs(r[m]["rel_error"][k]) for r in case) for k in case[0][m]["rel_error"]},
+                "failed": sum("failed" in r[m] for r in case)} for m in methods}
+    return out
 
 
 def plot(rows, path, methods=METHODS):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    fig, axes = plt.subplots(1, len(methods), figsize=(4 * len(methods), 3.6), sharey=True)
+    fig, axes = plt.subplots(1, len(methods), figsize=(4 * len(methods), 3.6), sharey=True, squeeze=False)
+    axes = axes[0]
     for ax, method in zip(axes, methods):
         for k, mark in zip(("E", "nu", "K", "G"), "os^v"):
             pts = [(r[method]["wall_time_s"], abs(r[method]["rel_error"][k])) for r in rows

@@ -109,6 +109,22 @@ class VFMResult:
     extra: dict = field(default_factory=dict)
 
 
+def measured(x, u, observed=None):
+    """(u as an (N, dim) array, the (N, dim) mask of its measured entries) for particles at
+    ``x``: ``observed`` (N,) or (N, dim), default the finite entries; non-finite entries are
+    never measured."""
+    u = np.asarray(u.detach() if torch.is_tensor(u) else u, dtype=float)
+    n, dim = x.shape
+    if u.shape != (n, dim):
+        raise ValueError(f"u must be (N, dim) = {(n, dim)} on the scene's particles, got {u.shape}")
+    obs = np.isfinite(u) if observed is None else np.asarray(observed, dtype=bool)
+    if obs.shape == (n,):
+        obs = np.repeat(obs[:, None], dim, axis=1)
+    if obs.shape != (n, dim):
+        raise ValueError(f"observed must be a boolean mask of shape (N,) or (N, {dim})")
+    return u, obs & np.isfinite(u)
+
+
 class VirtualWork:
     """Virtual works of a scene's virtual fields (Delorme 2018 eqs 24, 30-31).
 
@@ -216,18 +232,8 @@ class VirtualWork:
         return torch.as_tensor(np.where(obs, u, np.where(self.fixed_dofs, prescribed, 0.0)))
 
     def measured(self, u, observed=None):
-        """(u as an (N, dim) array, the (N, dim) mask of its measured entries): ``observed``
-        (N,) or (N, dim), default the finite entries; non-finite entries are never measured."""
-        u = np.asarray(u.detach() if torch.is_tensor(u) else u, dtype=float)
-        n, dim = self.x.shape
-        if u.shape != (n, dim):
-            raise ValueError(f"u must be (N, dim) = {(n, dim)} on the scene's particles, got {u.shape}")
-        obs = np.isfinite(u) if observed is None else np.asarray(observed, dtype=bool)
-        if obs.shape == (n,):
-            obs = np.repeat(obs[:, None], dim, axis=1)
-        if obs.shape != (n, dim):
-            raise ValueError(f"observed must be a boolean mask of shape (N,) or (N, {dim})")
-        return u, obs & np.isfinite(u)
+        """:func:`measured` at the scene's particles."""
+        return measured(self.x, u, observed)
 
     def _check_prescribed(self, u, obs, prescribed, sigma):
         """Warn where measured constrained dofs disagree with their prescribed values."""

@@ -28,7 +28,7 @@ def test_the_model_that_made_the_data_has_zero_residual_and_is_chosen(m, rule):
     scene = plate()
     with torch.no_grad():
         u = with_rule(scene, rule, 3.0).solve(dict(TRUTH, delta=float(m)))
-    res = estimate(scene, u, ms=(2, 3))
+    res = estimate(scene, u, work="pd", ms=(2, 3))
     assert (res.extra["m"], res.extra["rule"], res.extra["delta"]) == (m, rule, float(m))
     assert res.phi < 1e-10 and res.extra["fields"] > 2
     others = [c["phi"] for c in res.extra["candidates"] if (c["m"], c["rule"]) != (m, rule)]
@@ -60,10 +60,13 @@ def test_two_fields_are_flagged_and_cannot_choose():
         estimate(scene, u, fields=two, ms=(2, 3))
 
 
-@pytest.mark.parametrize("kw,match", [({"ms": (0, 2)}, "ms entry must be an integer >= 1"),
-                                      ({"rules": ("cubic",)}, "rules a subset of"),
-                                      ({"clearance": -1.0}, "clearance must be positive"),
-                                      ({"size": 0.0}, "size must be positive")])
+@pytest.mark.parametrize("kw,match", [({"work": "pd", "ms": (0, 2)}, "ms entry must be an integer >= 1"),
+                                      ({"work": "pd", "rules": ("cubic",)}, "rules a subset of"),
+                                      ({"work": "pd", "clearance": -1.0}, "clearance must be positive"),
+                                      ({"work": "pd", "size": 0.0}, "size must be positive"),
+                                      ({"size": 0.0}, "size must be positive"),
+                                      ({"margin": -1.0}, "margin must be positive"),
+                                      ({"work": "fem"}, "work must be 'local'")])
 def test_bad_candidates_are_refused_by_name(kw, match):
     scene = plate()
     with pytest.raises(ValueError, match=match):
@@ -86,6 +89,6 @@ def test_fe_beam_moduli_within_half_a_percent(nu):
     fields = paper[:1] + vf.interior_bumps((0, 0), (tpb.LENGTH, tpb.WIDTH), (6, 1), 2 * 5 * h + 1)
     with warnings.catch_warnings():
         warnings.simplefilter("error", ExactlyDeterminedWarning)
-        res = estimate(scene, torch.as_tensor(fe.at(scene.particles.x)), fields=fields, ms=(3, 4, 5))
+        res = estimate(scene, torch.as_tensor(fe.at(scene.particles.x)), fields=fields, work="pd", ms=(3, 4, 5))
     truth = tpb.params(1.0, nu)
     assert abs(res.params["K"] / truth["K"] - 1) < 5e-3 and abs(res.params["G"] / truth["G"] - 1) < 5e-3

@@ -82,10 +82,10 @@ def test_estimate_with_sigma_reports_se_spread_and_warns(setup):
     sigma = 2e-5 * np.abs(u).max()
     y = u + sigma * np.random.default_rng(3).standard_normal(u.shape) * ~scene.constraints.fixed_particles[:, None]
     with pytest.warns(NoisyEstimateWarning, match="standard error.*spread"):
-        estimate(scene, y, sigma=sigma, ms=(3,), rules=("linear",), size=8.0, max_se=1e-4)
+        estimate(scene, y, sigma=sigma, work="pd", ms=(3,), rules=("linear",), size=8.0, max_se=1e-4)
     with warnings.catch_warnings():
         warnings.simplefilter("error", NoisyEstimateWarning)
-        res = estimate(scene, y, sigma=sigma, ms=(2, 3), size=8.0, max_se=0.5)
+        res = estimate(scene, y, sigma=sigma, work="pd", ms=(2, 3), size=8.0, max_se=0.5)
     se, spread = res.extra["se"], res.extra["model_spread"]
     assert max(se.values()) < 0.01 and res.extra["fields"] >= 3 and res.method.startswith("weighted")
     for k, err in zip(("K", "G"), errors(res)):
@@ -112,7 +112,7 @@ def test_fe_beam_with_noise_lands_within_its_standard_error(nu):
     sigma = 1e-3 * np.abs(u).max()
     y = u + sigma * np.random.default_rng(5).standard_normal(u.shape)
     with pytest.warns(NoisyEstimateWarning):
-        res = estimate(scene, y, sigma=sigma, ms=(2, 3, 4))
+        res = estimate(scene, y, sigma=sigma, work="pd", ms=(2, 3, 4))
     truth = tpb.params(1.0, nu)
     se, spread = res.extra["se"], res.extra["model_spread"]
     assert se["K"] < 0.15 and se["G"] < 0.01

@@ -1,0 +1,156 @@
+"""``bayespd.inverse.vfm_local`` and ``local_fields``: the weak form on the measured grid, its
+fields, and the default VFM on scikit-fem fields (K and G within 0.5 %)."""
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+import bayespd as bp
+from bayespd.inverse.local_fields import harmonic_load_field, local_fields, rough_boundary
+from bayespd.inverse.vfm import ExactlyDeterminedWarning, identify
+from bayespd.inverse.vfm_defaults import estimate
+from bayespd.inverse.vfm_local import LocalWork, gradient_operator
+from bayespd.inverse.vfm_noise import weighted_identify
+
+
+def holed_plate(h=1.0):
+    """40 x 20 plate, hole of radius 4 at the centre, clamped left, pulled right (bonds at 3 h)."""
+    p = bp.grid_2d(40.0, 20.0, h)
+    p = p.where(np.linalg.norm(p.x - [20.0, 10.0], axis=1) > 4.0)
+    return bp.Scene(bp.LPS(p, bp.find_bonds(p, 3 * h), plane="stress"), [bp.Dirichlet.layer(p, "left", 3 * h)],
+                    [bp.Load(p.layer("right", h), (200.0, 0.0))])
+
+
+def gradient(p, u):
+    return (gradient_operator(p) @ u.reshape(-1)).reshape(p.n, p.dim, p.dim)
+
+
+def test_gradient_is_exact_for_quadratics_on_a_rectangle_and_linears_around_a_hole():
+    """Central and second-order one-sided differences are exact for quadratic fields; at the
+    hole's staircase some particles have one neighbour along an axis (first order): exact for
+    linear fields."""
+    p = bp.grid_2d(12.0, 7.0, 0.5)
+    x, y = p.x.T
+    u = np.stack([x**2 - 3 * x * y + 0.5 * y**2, 2 * x * y - y**2 + x], 1)
+    exact = np.stack([np.stack([2 * x - 3 * y, -3 * x + y], 1), np.stack([2 * y + 1, 2 * x - 2 * y], 1)], 1)
+    assert np.abs(gradient(p, u) - exact).max() < 1e-10
+    q = holed_plate().particles
+    A = np.array([[1e-3, -2e-4], [5e-4, 3e-3]])
+    assert np.abs(gradient(q, q.x @ A.T) - A).max() < 1e-14
+
+
+def test_rough_boundary_is_the_hole_staircase_only():
+    p = holed_plate().particles
+    rough = rough_boundary(p)
+    r = np.linalg.norm(p.x - [20.0, 10.0], axis=1)
+    assert rough.sum() > 8 and np.all(r[rough] < 4.0 + 1.5)  # within a cell diagonal of the circle
+    assert not rough_boundary(bp.grid_2d(10.0, 5.0, 1.0)).any()  # straight edges and corners
+
+
+def test_harmonic_load_field_obeys_its_constraints_and_the_maximum_principle():
+    """0 near the clamp, 1 near the load, one constant on the hole's zone, discrete-harmonic
+    elsewhere (4-neighbour Laplacian 0 to round-off), values in [0, 1]."""
+    scene = holed_plate()
+    p, margin = scene.particles, 2.0
+    s = harmonic_load_field(scene, margin)(p.x)[:, 0]
+    from scipy.spatial import cKDTree
+    d = lambda m: cKDTree(p.x[m]).query(p.x)[0]  # noqa: E731
+    fixed, loaded = scene.constraints.fixed_particles, (scene.force.abs().sum(1) > 0).numpy()
+    zero, one, zone = d(fixed) <= margin, d(loaded) <= margin, d(rough_boundary(p)) <= margin
+    assert np.all(s[zero] == 0) and np.all(s[one] == 1) and np.ptp(s[zone]) < 1e-12
+    assert 0.2 < s[zone][0] < 0.8 and s.min() >= -1e-12 and s.max() <= 1 + 1e-12
+    tree = cKDTree(p.x)
+    pairs = tree.query_pairs(1.0 + 1e-9, output_type="ndarray")
+    lap = np.zeros(p.n)
+    np.add.at(lap, pairs[:, 0], s[pairs[:, 1]] - s[pairs[:, 0]])
+    np.add.at(lap, pairs[:, 1], s[pairs[:, 0]] - s[pairs[:, 1]])
+    free = ~(zero | one | zone)
+    assert np.abs(lap[free]).max() < 1e-10
+
+
+def test_hats_keep_off_supports_loads_and_holes():
+    scene = holed_plate()
+    p = scene.particles
+    fields = local_fields(scene, margin=2.0, size=4.0)
+    avoid = scene.constraints.fixed_particles | (scene.force.abs().sum(1) > 0).numpy() | rough_boundary(p)
+    for f in fields[1:]:
+        assert not np.any(f(p.x)[avoid])
+    assert len(fields) > 10
+
+
+@pytest.fixture(scope="module")
+def fe_plate():
+    """The scikit-fem Q2 plate with a hole (bayespd.reference.plate_with_hole, h_FE = 0.25 mm) on
+    a 0.5 mm grid, nu = 0.37."""
+    from bayespd.reference import plate_with_hole as ph
+    scene = ph.pd_scene(0.5, 1.5)
+    E, nu = 4000.0, 0.37
+    u = ph.fe_solution(0.25, young=E, nu=nu).at(scene.particles.x)
+    K, G = map(float, bp.moduli_from_young(E, nu))
+    return scene, u, {"K": K, "G": G}
+
+
+def test_fe_plate_with_a_hole_within_half_a_percent(fe_plate):
+    """The default (local work, harmonic load field + hats) on the FE field: K, G within 0.5 %
+    (the issue's target). Measured 0.1 % (K) and 0.01 % (G) at nu = 0.15-0.45 on this grid; the
+    weak form's error is the differences' O(h^2) and the staircase kept off by the margin,
+    while the PD work with truncated families gave 3.5-5 % on this field."""
+    scene, u, truth = fe_plate
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ExactlyDeterminedWarning)
+        res = estimate(scene, u)
+    assert res.extra["work"] == "local" and res.extra["m"] is None and res.extra["fields"] > 10
+    for k in ("K", "G"):
+        assert abs(res.params[k] / truth[k] - 1) < 5e-3
+
+
+def test_noisy_estimate_standard_error_matches_monte_carlo(fe_plate):
+    """Noise 0.1 % of max |u| (se of K ~1 %: the linearised se holds; at 1 % noise K's se is
+    ~10 % and K's sd exceeds it by ~30 %, the map a -> K being nonlinear there): the errors of
+    200 draws have the sd that ``weighted_identify`` reports within 4 / sqrt(400) = 20 % (the
+    sd of a sample sd, 4 se), their mean is within 4 se / sqrt(200) + the noise-free bias
+    (0.2 %), and no draw fails."""
+    scene, u, truth = fe_plate
+    sigma = 1e-3 * np.abs(u).max()
+    work = LocalWork(scene, local_fields(scene), {"delta": 1.5})
+    rng = np.random.default_rng(11)
+    rows = []
+    for _ in range(200):
+        res = weighted_identify(work, u + sigma * rng.standard_normal(u.shape), sigma, max_se=None)
+        rows.append([res.params[k] / truth[k] - 1 for k in ("K", "G")] + [res.extra["se"][k] for k in ("K", "G")])
+    rows = np.array(rows)
+    se = np.median(rows[:, 2:], axis=0)
+    assert np.all(np.abs(rows[:, :2].std(0) / se - 1) < 0.2)
+    assert np.all(np.abs(rows[:, :2].mean(0)) < 4 * se / np.sqrt(200) + 2e-3)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("nu", [0.15, 0.3, 0.45])
+def test_fe_beam_within_half_a_percent(nu):
+    """scikit-fem Q2 three-point-bending beam (h_FE = 0.5 mm) on a 1 mm grid: K, G within 0.5 %
+    (measured 0.18-0.25 %, 0.01-0.18 % at h = 0.5 mm: the discretisation error of the weak form)."""
+    from bayespd.reference import three_point_bending as tpb
+    scene = tpb.pd_scene(1.0, 3.0)
+    res = estimate(scene, torch.as_tensor(tpb.fe_solution(**tpb.REFERENCE_MESH, nu=nu).at(scene.particles.x)))
+    truth = tpb.params(1.0, nu)
+    for k in ("K", "G"):
+        assert abs(res.params[k] / truth[k] - 1) < 5e-3
+
+
+
+def test_scattered_particles_are_refused_naming_the_pd_work():
+    x = np.random.default_rng(0).uniform(0, 10, (50, 2))
+    with pytest.raises(ValueError, match="regular grid.*work='pd'"):
+        gradient_operator(bp.from_points(x, np.ones(50), h=1.0))
+
+
+def test_a_gap_in_the_data_is_avoided_by_the_default_fields(fe_plate):
+    """A DIC-like gap (no data in a 2 mm disc on the ligament right of the hole): the default
+    fields keep off it (no field needs the missing displacements) and K, G stay within 0.5 %."""
+    scene, u, truth = fe_plate
+    y = u.copy()
+    y[np.linalg.norm(scene.particles.x - [31.0, 6.0], axis=1) < 2.0] = np.nan
+    res = estimate(scene, y)
+    for k in ("K", "G"):
+        assert abs(res.params[k] / truth[k] - 1) < 5e-3
