@@ -5,7 +5,7 @@ measured grid, no PD surface effect) with the fields of ``local_fields`` (a harm
 and bilinear hats kept off supports, loads and holes). The moduli do not depend on m or the
 ramp; ``extra["m"]`` and ``extra["rule"]`` are None. Measured on scikit-fem fields: K and G
 within 0.25 % (beam) and 0.06 % (plate with a hole), where the PD work below gave +1 to +5 %,
-with 4-10x smaller standard errors at 1 % noise (docs/results.md, VFM).
+with 3-13x smaller standard errors at 1 % noise (docs/results.md, VFM).
 
 ``work="pd"``: the PD virtual work (``vfm.VirtualWork``) with interior fields, and the horizon
 m = delta / h and partial-volume ramp chosen by the residual at the estimate (no truth needed):

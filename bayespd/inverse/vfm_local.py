@@ -4,8 +4,8 @@ LPS moduli's constants, free of the PD surface effect.
     W*_int,k = -sum_i V_i eps*_k,i : C(a) : eps_i,       eps = sym(D u),  eps* = sym(D u*),
 
 D the gradient by finite differences along the grid's axes (central, second-order one-sided
-where a neighbour is missing: the midpoint rule over the particles' cells with O(h^2) strains,
-so the weak form is second-order accurate up to the free surfaces), and C(a) the isotropic
+where a neighbour is missing; exact for quadratic fields), summed by the midpoint rule over
+the particles' cells, and C(a) the isotropic
 in-plane law of ``bayespd.materials.lps`` written in the PD constants (a_s, a_d) of
 ``vfm.pd_constants``: kappa = a_s + a_d / d^2, G = a_d / c, sigma = kappa tr(eps) I +
 2 G dev(eps), so C(a) = a_s C_s + a_d C_d with
@@ -13,11 +13,13 @@ in-plane law of ``bayespd.materials.lps`` written in the PD constants (a_s, a_d)
     eps* : C_s : eps = tr eps* tr eps,
     eps* : C_d : eps = tr eps* tr eps / d^2 + (2 / c) (eps* : eps - tr eps* tr eps / d).
 
-Traction-free surfaces are natural in a weak form: nothing near an edge, a hole or a support
-differs from the interior, unlike the PD operator with truncated families (``vfm``), whose
-virtual works are biased by 0.4-0.6 % each near the supports and the free surfaces
-(``docs/results.md``, VFM). The works are linear in (a_s, a_d) and in the data, so the closed
-form, ``vfm_noise`` and ``vfm_defaults`` apply unchanged.
+Traction-free surfaces are natural in a weak form, so a straight free edge (a grid line, which
+the cells tile exactly) needs no treatment, unlike the PD operator with truncated families
+(``vfm``), whose virtual works are biased by 0.4-0.6 % each near the supports and the free
+surfaces (``docs/results.md``, VFM). What the weak form does not handle, and the default
+fields (``local_fields``) keep away from: a curved boundary (a staircase of cells) and the
+singular data at support and load patches. The works are linear in (a_s, a_d) and in the
+data, so the closed form, ``vfm_noise`` and ``vfm_defaults`` apply unchanged.
 """
 from __future__ import annotations
 
