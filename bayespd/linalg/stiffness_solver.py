@@ -110,6 +110,7 @@ class Assembly:
             return (sp.csr_matrix((c * K.data, K.indices, K.indptr), shape=K.shape, copy=False),
                     lambda r: cycle(r) / c)
         self._kept = None  # not kept alive beside the new one (peak memory)
+        kept.positions = positions.copy()  # the caller's array may change in place
         kept.K = pair_operator(terms, self.free_index)
         kept.cycle = amg_preconditioner(terms, self.free_index, positions, pair=kept.K)
         self._kept = kept
@@ -243,8 +244,8 @@ class _KeptPair:
     def scale(self, kept: "_KeptPair") -> float | None:
         """c > 0 with these weights = c x ``kept``'s (to 1e-13 relative each), the same
         operators, data, rows and positions; else None."""
-        if len(self.parts) != len(kept.parts) or not self.parts or not (
-                self.positions is kept.positions or np.array_equal(self.positions, kept.positions)):
+        if len(self.parts) != len(kept.parts) or not self.parts or not np.array_equal(
+                self.positions, kept.positions):
             return None
         for (g, d, rows, _), (g0, d0, rows0, _) in zip(self.parts, kept.parts):
             if g is not g0 or not (_same_buffer(d, d0) or np.array_equal(d, d0)) \
@@ -262,7 +263,8 @@ class _KeptPair:
 
 
 def _same_buffer(a: np.ndarray, b: np.ndarray) -> bool:
-    """a and b view the same memory alike (b is kept alive, so its buffer is not reused)."""
+    """a and b view the same memory alike (b is kept alive, so its buffer is not reused; an
+    operator's data, e.g. a material's bond directions, are never written in place)."""
     return (a.shape == b.shape and a.dtype == b.dtype and a.strides == b.strides
             and a.__array_interface__["data"][0] == b.__array_interface__["data"][0])
 
