@@ -213,10 +213,10 @@ def cached_kernel(fn):
     return fn if numba is None else numba.njit(nogil=True, cache=True)(fn)
 
 
-# (y, |y|, eta . (y + xi)) of bond b from particle p to q (e = that / (|y| + |xi|)), y a tuple:
-# the components written out, which the compiler keeps in registers (a loop over an array of them, or a branch on the dimension
-# inside one function, is slower). The kernels take one as their first argument and are
-# compiled for it.
+# (y, |y|, eta . (y + xi)) of bond b from particle p to q (e = that / (|y| + |xi|)), y a
+# tuple: the components written out, which the compiler keeps in registers (a loop over an
+# array of them, or a branch on the dimension inside one function, is slower). The kernels
+# take one as their first argument and are compiled for it.
 
 @_compiled
 def _bond2(u, p, q, xi, length, b):  # pragma: no cover (compiled)
