@@ -10,7 +10,8 @@ run's initial velocity field v_x = v0 (1/2 - y / L) clip(x / (W/2), -1, 1)
 (``bayespd.learn.md.fracture_run``). Pulse run: free edges, at rest, the coarse-grained pulse
 body force (linear in time between frames). ``surface=True``: the free-surface-corrected LPS of
 paper 004 eq 3.18 (``bayespd.learn.free_surface``) with the missing bonds beyond the free edges and
-across the slit as broken bonds; the sites beyond the pulled columns (where the grips are) are no bonds.
+across the slit as broken bonds; the sites beyond the pulled columns (where the grips are) are the
+paper's Dirichlet collar, moving with their nearest node.
 """
 from __future__ import annotations
 
@@ -169,6 +170,7 @@ def s0_posterior(sc: Scene, half: int, bounds, draws: int = 200, seed: int = 0) 
     data = sc.u[late][:, free]
     md_len = np.asarray(crack_history(sc.time, sc.tip)["length_A"])
     out = {}
+
     def sd(k, relative):
         u = runs[k].u[late][:, free]
         return np.sqrt(sse_rel[k] / values * (u**2).mean((1, 2)))[:, None, None] if relative else sigma[k]
@@ -184,30 +186,35 @@ def s0_posterior(sc: Scene, half: int, bounds, draws: int = 200, seed: int = 0) 
         rng = np.random.default_rng(seed)
         pick = rng.choice(len(grid), size=draws, p=w)
         pred = np.stack([runs[k].u[late][:, free] + sd(k, relative) * rng.standard_normal(data.shape) for k in pick])
-        lo, hi = np.quantile(pred, [0.05, 0.95], axis=0)
-        lengths = np.stack([crack_history(sc.time, pd_tip(sc, runs[k]))["length_A"] for k in pick])
-        c_lo, c_hi = np.quantile(lengths, [0.05, 0.95], axis=0)
-        cdf = np.cumsum(w)
-        out[name] = {"n": int(n), "s0_q05": float(grid[np.searchsorted(cdf, 0.05)]),
-                     "s0_median": float(grid[np.searchsorted(cdf, 0.5)]), "s0_q95": float(grid[np.searchsorted(cdf, 0.95)]),
-                     "weight_at_grid_ends": float(w[0] + w[-1]),
-                     "extrapolation_band90_node_frame_coverage": float(((data >= lo) & (data <= hi)).all(-1).mean()),
-                     "crack_length_band90_A": {"q05": c_lo.tolist(), "q95": c_hi.tolist()},
-                     "crack_length_md_inside_band_share_of_frames": float(((md_len >= c_lo) & (md_len <= c_hi)).mean())}
-    out["relative_correlated"] = _relative_correlated(sc, runs, grid, half, data, md_len, draws, seed)
+        out[name] = {"n": int(n), **_bands(sc, runs, grid, w, pick, pred, data, md_len)}
+    out["relative_correlated"] = _relative_correlated(sc, runs, grid, half, scale, data, md_len, draws, seed)
     return {"grid": grid.tolist(), "training_sse_A2": sse.tolist(), "sigma_at_best_A": float(sigma.min()),
             "values": values, **out}
 
 
-def _relative_correlated(sc: Scene, runs, grid, half: int, data, md_len, draws: int, seed: int) -> dict:
+def _bands(sc: Scene, runs, grid, w, pick, pred, data, md_len) -> dict:
+    """The s0 quantiles of the grid weights ``w``, and the 90 % bands of the predictions ``pred``
+    (draws at the grid points ``pick``) and of their crack lengths, with the share of the MD data inside."""
+    lo, hi = np.quantile(pred, [0.05, 0.95], axis=0)
+    lengths = np.stack([crack_history(sc.time, pd_tip(sc, runs[k]))["length_A"] for k in pick])
+    c_lo, c_hi = np.quantile(lengths, [0.05, 0.95], axis=0)
+    cdf = np.cumsum(w)
+    return {"s0_q05": float(grid[np.searchsorted(cdf, 0.05)]), "s0_median": float(grid[np.searchsorted(cdf, 0.5)]),
+            "s0_q95": float(grid[np.searchsorted(cdf, 0.95)]), "weight_at_grid_ends": float(w[0] + w[-1]),
+            "extrapolation_band90_node_frame_coverage": float(((data >= lo) & (data <= hi)).all(-1).mean()),
+            "crack_length_band90_A": {"q05": c_lo.tolist(), "q95": c_hi.tolist()},
+            "crack_length_md_inside_band_share_of_frames": float(((md_len >= c_lo) & (md_len <= c_hi)).mean())}
+
+
+def _relative_correlated(sc: Scene, runs, grid, half: int, scales, data, md_len, draws: int, seed: int) -> dict:
     """The s0 posterior and 90 % bands with ``bayespd.learn.model_error``'s term: error relative to
-    each frame's rms PD displacement, exponentially correlated in space and time, (ell, tau) by
-    evidence at the best-fitting s0 on grids (h/2 .. 64 h, half a frame .. 32 frames), r marginalised."""
+    each frame's rms PD displacement (``scales``: s_t of each run's training frames), exponentially
+    correlated in space and time, (ell, tau) by evidence at the best-fitting s0 on grids (h/2 .. 64 h,
+    half a frame .. 32 frames), r marginalised."""
     free = ~sc.fixed
     train = slice(1, half)
     x, t = sc.material.particles.x[free], sc.time[train]
     residuals = [sc.u[train][:, free] - r.u[train][:, free] for r in runs]
-    scales = [np.sqrt((r.u[train][:, free] ** 2).mean((1, 2))) for r in runs]
     best = int(np.argmin([((e / s[:, None, None]) ** 2).sum() for e, s in zip(residuals, scales)]))
     h, step = sc.material.bonds.h, float(np.diff(sc.time).mean())
     term, table = fit_relative_error(residuals[best], scales[best], x, t, h * 2.0 ** np.arange(-1, 7),
@@ -223,14 +230,6 @@ def _relative_correlated(sc: Scene, runs, grid, half: int, data, md_len, draws: 
         u = runs[k].u[half:][:, free]
         r = np.sqrt(term.quadratic(residuals[k], scales[k]) / rng.chisquare(values))
         pred.append(u + term.draw(rng, np.sqrt((u**2).mean((1, 2))), r, 2))
-    lo, hi = np.quantile(np.stack(pred), [0.05, 0.95], axis=0)
-    lengths = np.stack([crack_history(sc.time, pd_tip(sc, runs[k]))["length_A"] for k in pick])
-    c_lo, c_hi = np.quantile(lengths, [0.05, 0.95], axis=0)
-    cdf = np.cumsum(w)
     return {"ell_A": term.ell, "tau_ps": term.tau, "log_evidence_ell_by_tau": table.tolist(),
             "r_at_best": float(np.sqrt(term.quadratic(residuals[best], scales[best]) / values)),
-            "s0_q05": float(grid[np.searchsorted(cdf, 0.05)]), "s0_median": float(grid[np.searchsorted(cdf, 0.5)]),
-            "s0_q95": float(grid[np.searchsorted(cdf, 0.95)]), "weight_at_grid_ends": float(w[0] + w[-1]),
-            "extrapolation_band90_node_frame_coverage": float(((data >= lo) & (data <= hi)).all(-1).mean()),
-            "crack_length_band90_A": {"q05": c_lo.tolist(), "q95": c_hi.tolist()},
-            "crack_length_md_inside_band_share_of_frames": float(((md_len >= c_lo) & (md_len <= c_hi)).mean())}
+            **_bands(sc, runs, grid, w, pick, np.stack(pred), data, md_len)}
