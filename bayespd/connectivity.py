@@ -83,4 +83,3 @@ def _by_particle(bonds, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         a.setflags(write=False)
     _BY_PARTICLE[:] = [(bonds, n, arrays)] + _BY_PARTICLE[:1]
     return arrays
-

@@ -13,12 +13,12 @@ particles and from *rough* boundary particles (:func:`rough_boundary`):
   ``margin`` of every loaded one and constant (free) on each connected zone within ``margin``
   of a rough boundary: W*_ext = |F|, its strain is spread as evenly as the geometry allows
   (least Dirichlet energy) and vanishes where the data cannot be trusted;
-Particles without data (gaps in a DIC field) are avoided in the same way.
-
 * hats prod_a max(0, 1 - |x_a - c_a| / size) e_k on a grid of nodes ``size`` apart, each kept
   when no constrained, loaded or rough particle lies within ``margin`` of its support: a basis
   of piecewise-bilinear fields in which ``vfm_noise``'s weighted least squares finds the
   noise-optimal combination (Avril, Grédiac & Pierron 2004's piecewise virtual fields).
+
+Particles without data (gaps in a DIC field) are avoided like a rough boundary.
 """
 from __future__ import annotations
 
@@ -99,7 +99,8 @@ def harmonic_load_field(scene, margin: float, unmeasured=None):
     value = np.where(one, 1.0, 0.0)
     ends = np.concatenate([edges, edges[:, ::-1]])  # each edge seen from both ends (row, other)
     row, col = unknown[ends[:, 0]], unknown[ends[:, 1]]
-    ends, row, col = ends[(row >= 0) & (row != col)], row[(row >= 0) & (row != col)], col[(row >= 0) & (row != col)]
+    coupled = (row >= 0) & (row != col)  # an unknown's edge to a fixed value or another unknown
+    ends, row, col = ends[coupled], row[coupled], col[coupled]
     inner = col >= 0
     L = sp.csr_matrix((np.concatenate([np.ones(len(row)), -np.ones(inner.sum())]),
                        (np.concatenate([row, row[inner]]), np.concatenate([row, col[inner]]))), shape=(m, m))
