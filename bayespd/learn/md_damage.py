@@ -57,3 +57,17 @@ def tip_height(mid_y, broken) -> np.ndarray:
     bonds (NaN where none is): the crack tip of a crack running up, for atoms or PD bonds."""
     mid_y = np.asarray(mid_y, float)
     return np.array([mid_y[row].max() if row.any() else np.nan for row in np.asarray(broken, bool)])
+
+
+def slit_centre(X, top: float, reach: float = 5.0) -> float:
+    """The x of an edge slit's centre line in the reference atom positions ``X`` (n, 2): the middle
+    of the widest gap between the atoms' x within ``reach`` A of x = 0 below the slit's ``top``
+    (``bayespd.learn.graphene.edge_slit`` removes one atom column, so the gap is two lattice
+    spacings wide and centred on it). A PD pre-crack drawn there puts each coarse node on the side
+    of the slit its atoms are on."""
+    X = np.asarray(X, float)
+    x = np.unique(X[(X[:, 1] < top) & (np.abs(X[:, 0]) < reach), 0])
+    if len(x) < 2:
+        raise ValueError(f"no atoms within {reach} A of x = 0 below y = {top}: pass the slit's top and a wider reach")
+    k = int(np.argmax(np.diff(x)))
+    return float(0.5 * (x[k] + x[k + 1]))

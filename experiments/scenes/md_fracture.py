@@ -3,7 +3,8 @@ coarse grid, and the paper's metrics of a forward run (paper 004 sec. 5.2-5.3): 
 (``bayespd.scenes.md_fracture``); experiments/md_learning.py runs it and writes the metrics.
 
 Scene: the coarse grid's nodes (spacing h, cells h^2, unit thickness), the learned LPS at delta,
-the 25 A edge slit cut as a pre-crack, the coarse-grained MD density of frame 0. Fracture run:
+the 25 A edge slit cut as a pre-crack along the removed atom column's centre line
+(``bayespd.learn.md_damage.slit_centre``), the coarse-grained MD density of frame 0. Fracture run:
 the outermost node column on each side follows the coarse-grained MD displacement (linear in
 time between frames; the gripped atoms lie beyond the grid), the other nodes start on the MD
 run's initial velocity field v_x = v0 (1/2 - y / L) clip(x / (W/2), -1, 1)
@@ -26,16 +27,16 @@ from bayespd.bonds import find_bonds, precrack
 from bayespd.damage import DamageIndex
 from bayespd.discretize import from_points
 from bayespd.influence import Bernstein
+from bayespd.learn.damage_error import cone_average, lagged, shifted, straight_crack_intact
 from bayespd.learn.discrepancy import count_damage, relative_error, relative_mse
 from bayespd.learn.forward import forward_run, linear_in_time
 from bayespd.learn.kernel import lps_params
 from bayespd.learn.model_error import fit_relative_error
-from bayespd.learn.md_damage import broken_atom_bonds, cut_coarse_bonds, tip_height
+from bayespd.learn.md_damage import broken_atom_bonds, cut_coarse_bonds, slit_centre, tip_height
 from bayespd.materials.lps import LPS
 
 DEGREE = 3
-SLIT = [[0.1, -51.0], [0.1, -25.0]]  # the 25 A edge slit at x = 0 (just right of the atom column it removed)
-SLIT_TIP = -25.0                      # A: crack lengths are measured from here
+SLIT_TIP = -25.0  # A: the top of the 25 A edge slit; crack lengths are measured from here
 
 
 @dataclass
@@ -49,6 +50,7 @@ class Scene:
     intact: np.ndarray       # MD intact fraction (0/1) of the coarse bonds (F, bonds)
     tip: np.ndarray          # MD crack tip height per frame (A; NaN before the first break)
     fixed: np.ndarray
+    slit_x: float            # A: the pre-crack's line (``slit_centre``)
     moving: object
     v0: np.ndarray
     body: object
@@ -67,10 +69,12 @@ def scene(coarse, record, kernel: dict, h: float, pulled: bool, surface: bool = 
     x = coarse["nodes"]
     particles = from_points(x, np.full(len(x), h * h), h=h)
     delta = kernel["delta_A"]
-    material = LPS(particles, precrack(particles, find_bonds(particles, delta), SLIT), plane="strain",
+    X, t, u = record["X"].values, coarse["time"], coarse["u"]
+    centre = slit_centre(X, SLIT_TIP)  # the removed atom column (x = -0.62 A in the records)
+    slit = [[centre, x[:, 1].min() - h], [centre, SLIT_TIP]]
+    material = LPS(particles, precrack(particles, find_bonds(particles, delta), slit), plane="strain",
                    influence=Bernstein(DEGREE))
     params = lps_params(kernel["lambda"], kernel["mu"], kernel["D"], delta)
-    X, t, u = record["X"].values, coarse["time"], coarse["u"]
     pairs, broken = broken_atom_bonds(X, record["U"].values)
     intact = cut_coarse_bonds(x, material.bonds.i, material.bonds.j, X, pairs, broken)
     index = DamageIndex(particles, material.bonds, material.bond_weight(params).detach())
@@ -84,9 +88,9 @@ def scene(coarse, record, kernel: dict, h: float, pulled: bool, surface: bool = 
         v0[:, 0] = speed * (0.5 - x[:, 1] / length) * np.clip(x[:, 0] / half_width, -1.0, 1.0)
         lo, hi = x[:, 0].min() - h / 2, x[:, 0].max() + h / 2
         free = (lambda sites: (sites[:, 0] > lo) & (sites[:, 0] < hi)) if surface else False  # beyond the pulled columns: collar
-        return Scene(material, params, coarse["rho"][0], t, u, phi, intact, tip, fixed, linear_in_time(t, u), v0, None,
-                     free)
-    return Scene(material, params, coarse["rho"][0], t, u, phi, intact, tip, np.zeros(len(x), bool), None, v0,
+        return Scene(material, params, coarse["rho"][0], t, u, phi, intact, tip, fixed, centre, linear_in_time(t, u), v0,
+                     None, free)
+    return Scene(material, params, coarse["rho"][0], t, u, phi, intact, tip, np.zeros(len(x), bool), centre, None, v0,
                  linear_in_time(t, coarse["b"]), surface)
 
 
@@ -127,6 +131,33 @@ def metrics(sc: Scene, run, frames=slice(None)) -> dict:
     return out
 
 
+def damage_diagnosis(sc: Scene, run, frames=slice(None), lags=range(-3, 4), shifts=(-2, -1, 1, 2)) -> dict:
+    """Where the eq 5.4 damage error (norm reading) of ``run`` over ``frames`` comes from
+    (``bayespd.learn.damage_error``): the error with the PD history lagged by whole frames
+    (timing), with the PD field moved by whole grid columns (crack line), with both fields
+    cone-averaged over the horizon (the same operator on both: paths closer than delta agree), of
+    a straight crack along the slit line with the MD tip history (the MD timing and length
+    exactly: the part due to the MD path alone), and of the PD run against that straight crack."""
+    x, b = sc.material.particles.x, sc.material.bonds
+    delta = float(sc.params["delta"])
+
+    def eq54(intact):
+        return count_damage(len(x), b.i, b.j, b.length, delta, intact)
+
+    def error(pred, data):
+        return relative_error(pred[frames], data[frames])
+
+    pd, md = eq54(run.intact), eq54(sc.intact)
+    by_lag = {int(k): error(lagged(pd, k), md) for k in lags}
+    by_shift = {float(c * b.h): error(shifted(pd, x, [c * b.h, 0.0]), md) for c in shifts}
+    straight = eq54(straight_crack_intact(x, b.i, b.j, sc.slit_x, SLIT_TIP, sc.tip))
+    lag, shift = min(by_lag, key=by_lag.get), min(by_shift, key=by_shift.get)
+    return {"as_run": error(pd, md), "by_lag_frames": by_lag, "best_lag_frames": lag, "at_best_lag": by_lag[lag],
+            "by_shift_A": by_shift, "best_shift_A": shift, "at_best_shift": by_shift[shift],
+            "both_cone_averaged_over_delta": error(cone_average(pd, x, delta), cone_average(md, x, delta)),
+            "straight_crack_md_tip_vs_md": error(straight, md), "pd_vs_straight_crack_md_tip": error(pd, straight)}
+
+
 def pd_tip(sc: Scene, run) -> np.ndarray:
     """PD crack tip height per frame: the highest midpoint of the bonds with gamma < 1/2."""
     x, b = sc.material.particles.x, sc.material.bonds
@@ -139,7 +170,8 @@ def evaluate(sc: Scene, s0, frames=slice(None)) -> dict:
     run = sc.run(s0)
     wall = time.perf_counter() - t
     return {"s0": s0, "wall_time_s": wall, "steps": run.steps, "dt_ps": run.dt, "frames": metrics(sc, run, frames),
-            "whole_record": metrics(sc, run), "crack_pd": crack_history(sc.time, pd_tip(sc, run)),
+            "whole_record": metrics(sc, run), "damage_diagnosis": damage_diagnosis(sc, run, frames),
+            "crack_pd": crack_history(sc.time, pd_tip(sc, run)),
             "crack_md": crack_history(sc.time, sc.tip)}
 
 

@@ -1,9 +1,10 @@
 """The MD crack on the coarse grid (bayespd.learn.md_damage) on a synthetic graphene sheet."""
 import numpy as np
+import pytest
 
 from bayespd.learn import graphene
 from bayespd.learn.md import A0
-from bayespd.learn.md_damage import broken_atom_bonds, cut_coarse_bonds, tip_height
+from bayespd.learn.md_damage import broken_atom_bonds, cut_coarse_bonds, slit_centre, tip_height
 
 
 def opened_sheet():
@@ -40,3 +41,20 @@ def test_coarse_bonds_cut_are_those_crossing_the_crack_and_tip_is_its_top():
     np.testing.assert_array_equal(intact[1], [0.0, 1.0, 1.0, 1.0, 0.0])
     tip = tip_height(0.5 * (X[pairs[:, 0], 1] + X[pairs[:, 1], 1]), broken)
     assert np.isnan(tip[0]) and 8.0 < tip[1] < 10.0 + A0
+
+
+def test_slit_centre_is_the_removed_column():
+    """edge_slit removes the atoms within 0.6 a of a column; the neighbouring columns are sqrt(3)/2 a
+    = 1.23 A away on either side (zigzag-x sheet), so the gap's middle is the column to rounding;
+    an atom-scale jitter of the kept atoms (0.1 A, as after relaxation) moves it by at most that."""
+    nx, ny = graphene.cells_for(30.0, 30.0, A0)
+    X, box = graphene.sheet(nx, ny, A0)
+    X = X - box / 2.0
+    column = X[np.argmin(np.abs(X[:, 0] - 0.5)), 0]
+    kept = X[graphene.edge_slit(X, column, X[:, 1].min() - 0.1, 10.0, A0)]
+    top = X[:, 1].min() + 9.0
+    assert abs(slit_centre(kept, top) - column) < 1e-12
+    jitter = np.random.default_rng(0).uniform(-0.1, 0.1, kept.shape)
+    assert abs(slit_centre(kept + jitter, top) - column) <= 0.1
+    with pytest.raises(ValueError, match="wider reach"):
+        slit_centre(kept, X[:, 1].min() - 1.0)
