@@ -27,7 +27,7 @@ from bayespd.scenes.md_fracture import DEGREE, evaluate, s0_posterior, scene
 from md_graphene_data import RESOLUTION
 from bayespd.influence import Bernstein
 from bayespd.learn import md, md_files
-from bayespd.infer import fit
+from bayespd.infer import NotPositiveDefiniteHessian, fit
 from bayespd.learn.coarse_grain import coarse_grain
 from bayespd.learn.discrepancy import learn_s0, relative_error
 from bayespd.learn.kernel import UnsolvableKernel, learn_kernel, lps_params, relative_errors
@@ -219,7 +219,8 @@ def main():
     two["wall_time_s_total"] = time.perf_counter() - t
     try:
         posterior = bayes(one["best"], data, args.quick)
-    except UnsolvableKernel as error:  # the MAP search stepped onto a kernel with m <= 0 (docs/results.md)
+    except (UnsolvableKernel, NotPositiveDefiniteHessian) as error:  # the MAP search stepped onto a kernel
+        # with m <= 0, or stopped on a kink in delta where the Hessian is indefinite (docs/results.md)
         posterior = {"failed": str(error), "validation_band90_node_coverage": None}
     print(posterior, flush=True)
     targets = {f"moduli_{k}_within_5pct": {"value": v, "target": MODULI_TOLERANCE, "passed": v <= MODULI_TOLERANCE}
