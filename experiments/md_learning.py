@@ -31,6 +31,7 @@ from bayespd.infer import NotPositiveDefiniteHessian, fit
 from bayespd.learn.coarse_grain import coarse_grain
 from bayespd.learn.discrepancy import learn_s0, relative_error
 from bayespd.learn.kernel import UnsolvableKernel, learn_kernel, lps_params, relative_errors
+from bayespd.learn.kernel_shape import KernelShape
 from bayespd.learn.moduli import long_wave_moduli
 from bayespd.learn.periodic import PeriodicSheet, periodic_bonds, periodic_grid
 from bayespd.materials.lps import LPS
@@ -171,22 +172,23 @@ def bayes(best, data, quick):
     y = sheet.zero_mean(u)
     scales = y.pow(2).mean((1, 2)).sqrt()
     model = md_kernel(sheet, f, scales, nominal=best["mu"], positive_kernel=False)
-    D = best["D"] / np.linalg.norm(best["D"])  # the prior N(0, 1) holds D's free scale near 1
+    plane = KernelShape(sheet.material.influence)
     init = {"lam_plus_mu": best["lambda"] + best["mu"], "mu": best["mu"], "delta": best["delta_A"],
-            "d": D, "sigma": best["train_rel_error_mean"]}
+            "shape": plane.coordinates(best["D"]), "sigma": best["train_rel_error_mean"]}
     t = time.perf_counter()
     tree = fit(model, {"y": y}, "laplace", num_samples=40 if quick else 200, seed=0, progress=False,
                predictive=False, init_values={k: torch.as_tensor(v) for k, v in init.items()})
     wall = time.perf_counter() - t
     post = tree["posterior"]
-    draws = {k: post[k].values.reshape(-1, *post[k].shape[2:]) for k in ("lam_plus_mu", "mu", "delta", "d", "sigma")}
+    draws = {k: post[k].values.reshape(-1, *post[k].shape[2:]) for k in ("lam_plus_mu", "mu", "delta", "shape", "sigma")}
+    draws["D"] = plane.coefficients(torch.as_tensor(draws["shape"])).numpy()
     fv, uv = data["validation"]
     yv = sheet.zero_mean(uv).numpy()
     sv = np.sqrt((yv**2).mean((1, 2)))
     rng = np.random.default_rng(0)
     pred, inadmissible = [], 0
     for k in range(0, len(draws["mu"]), max(1, len(draws["mu"]) // 50)):
-        p = lps_params(draws["lam_plus_mu"][k] - draws["mu"][k], draws["mu"][k], draws["d"][k], draws["delta"][k])
+        p = lps_params(draws["lam_plus_mu"][k] - draws["mu"][k], draws["mu"][k], draws["D"][k], draws["delta"][k])
         try:
             with torch.no_grad():
                 mean = sheet.spectral_solve(p, fv).numpy()
@@ -197,7 +199,7 @@ def bayes(best, data, quick):
     lo, hi = np.quantile(np.array(pred), [0.05, 0.95], axis=0)
     inside = ((yv >= lo) & (yv <= hi)).all(-1)
     summary = {k: {"mean": float(np.mean(v)), "sd": float(np.std(v)), "q05": float(np.quantile(v, 0.05)),
-                   "q95": float(np.quantile(v, 0.95))} for k, v in draws.items() if k != "d"}
+                   "q95": float(np.quantile(v, 0.95))} for k, v in draws.items() if k not in ("shape", "D")}
     lam = draws["lam_plus_mu"] - draws["mu"]
     summary["lambda"] = {"mean": float(lam.mean()), "sd": float(lam.std()), "q05": float(np.quantile(lam, 0.05)),
                          "q95": float(np.quantile(lam, 0.95))}

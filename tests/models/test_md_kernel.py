@@ -1,6 +1,7 @@
 """models/md_kernel.py on synthetic periodic PD data (tests/learn/test_kernel.py's sheet): the
 likelihood is stationary at the truth and the log density's Hessian (the Laplace precision) is
-finite and negative definite there, apart from the free scale of D."""
+finite and negative definite there (for D = exp(d) apart from D's free scale; the sign-changing
+kernel's shape coordinates have none)."""
 import numpy as np
 import pytest
 import torch
@@ -10,6 +11,7 @@ from pyro.infer.autoguide.initialization import init_to_value
 from bayespd.infer.mode import grad_or_refused
 from bayespd.infer.space import Unconstrained
 from bayespd.learn.kernel import lps_params
+from bayespd.learn.kernel_shape import KernelShape
 from bayespd.materials import ParameterRangeError
 from bayespd.models.md_kernel import md_kernel
 from tests.learn.test_kernel import MODES, sheet, sinusoidal_forces
@@ -56,18 +58,50 @@ def test_scales_must_be_one_positive_rms_per_load():
         md_kernel(s, f, torch.ones(2), nominal=1.0)
 
 
-def test_an_inadmissible_kernel_is_a_refused_point_of_the_map_search():
-    """The sign-changing kernel D = -D_true has m < 0 everywhere: the model raises a
-    ParameterRangeError there (UnsolvableKernel), which the MAP search takes as an infinite
-    potential (a rejected trial point), while the admissible start evaluates finitely."""
-    s = sheet()
-    delta = 2.6 * s.material.particles.h
+def sign_changing(s, delta):
+    """(y, model, the truth's values) of the sign-changing model on noise-free data."""
     f = sinusoidal_forces(s, MODES)
     y = s.spectral_solve(lps_params(LAM, MU, D, delta), f).detach()
     model = md_kernel(s, f, y.pow(2).mean((1, 2)).sqrt(), nominal=MU, positive_kernel=False)
-    good = {"lam_plus_mu": torch.tensor(LAM + MU), "mu": torch.tensor(MU), "delta": torch.tensor(delta),
-            "d": torch.tensor(D), "sigma": torch.tensor(0.01)}
-    bad = {**good, "d": -torch.tensor(D)}
+    truth = {"lam_plus_mu": torch.tensor(LAM + MU), "mu": torch.tensor(MU), "delta": torch.tensor(delta),
+             "shape": KernelShape(s.material.influence).coordinates(torch.tensor(D)), "sigma": torch.tensor(0.01)}
+    return y, model, truth
+
+
+def test_the_sign_changing_kernel_has_no_free_direction():
+    """D on the plane of normalised kernels (learn.kernel_shape): the log density's Hessian at
+    the truth is negative definite with nothing projected out (the old D = d ~ N(0, I) had a
+    direction, D's scale, seen by the prior alone), and the likelihood is stationary there."""
+    s = sheet()
+    y, model, truth = sign_changing(s, 2.6 * s.material.particles.h)
+
+    def at(z, site=None):  # z = (log(lam + mu), log mu, delta, shape), sigma fixed
+        return log_density(model, y, {**truth, "lam_plus_mu": torch.exp(z[0]), "mu": torch.exp(z[1]),
+                                      "delta": z[2], "shape": z[3:]}, site)
+
+    z0 = torch.cat([torch.log(truth["lam_plus_mu"])[None], torch.log(truth["mu"])[None], truth["delta"][None],
+                    truth["shape"]])
+    H = torch.autograd.functional.hessian(at, z0)
+    eig = torch.linalg.eigvalsh(-H)
+    assert bool((eig > 1e-8 * eig[-1]).all())
+    z = z0.clone().requires_grad_(True)
+    grad = torch.autograd.grad(at(z, "y"), z)[0]
+    assert float(grad.abs().max()) < 1e-6 * float(H.abs().max())
+
+
+def test_an_inadmissible_kernel_is_a_refused_point_of_the_map_search():
+    """Far along a direction of the plane whose discrete weighted volume is negative (the
+    continuous moment is the plane's, the lattice sum is not), m < 0: the model raises a
+    ParameterRangeError there (UnsolvableKernel), which the MAP search takes as an infinite
+    potential (a rejected trial point), while the truth evaluates finitely."""
+    s = sheet()
+    delta = 2.6 * s.material.particles.h
+    y, model, good = sign_changing(s, delta)
+    plane, material = KernelShape(s.material.influence), s.material
+    moment = torch.stack([(material.bond_weight({"D": n, "delta": torch.tensor(delta)}) * material.length**2).sum()
+                          for n in plane.basis.T])
+    j = int(moment.abs().argmax())
+    bad = {**good, "shape": -1e6 * torch.sign(moment[j]) * torch.eye(plane.dim, dtype=moment.dtype)[j]}
     with pytest.raises(ParameterRangeError, match="not admissible"):
         log_density(model, y, bad)
     space = Unconstrained(model, {"y": y}, init_to_value(values=good))
