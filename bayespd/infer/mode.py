@@ -1,8 +1,8 @@
 """The posterior mode on Pyro's unconstrained space, from one start or several.
 
 ``find_map``: L-BFGS on the potential U(z) = -log p(y, z), restarted while it still falls
-(a line search that meets a kink stops early), then Newton steps. ``best_map``: the lowest
-of several searches, from the initial point and from a Latin hypercube of prior draws. A
+(a line search that meets a kink stops early), then trust-region Newton steps on the
+Laplace step's Hessian (``trust_region``). ``best_map``: the lowest of several searches, from the initial point and from a Latin hypercube of prior draws. A
 PD likelihood can have several basins in delta, split by kinks where a bond length crosses
 delta +- h/2 (the partial-volume weights are piecewise linear in delta): on the 64-particle
 calibration plate, searches from the prior median end in one of three basins with
@@ -13,6 +13,7 @@ another stays there (``experiments/sbc.py --free-delta``).
 import json
 import math
 import warnings
+from functools import partial
 
 import numpy as np
 import torch
@@ -23,13 +24,13 @@ from bayespd.materials import ParameterRangeError
 from bayespd.linalg.sparse import NotPositiveDefiniteError
 
 from .space import init_trace
+from .trust_region import polish
 
 MODE_GAP = 3.0  # nats: a second mode closer than this to the best holds >= 5 % of its density
 BARRIER = 1.0  # nats above the higher of two search ends that make them separate modes
 
 
 REFUSED = (NotPositiveDefiniteError, ParameterRangeError)  # parameters the model refuses
-REFUSED_HALVINGS = 10  # a Newton step that lands on refused parameters is halved up to this often
 
 
 def _grad(space, z):
@@ -47,13 +48,14 @@ def grad_or_refused(space, z):
         return math.inf, None
 
 
-def find_map(space, hessian_fn=None, gtol=1e-8, max_iter=1000, newton_steps=5, restarts=20,
+def find_map(space, hessian_fn=None, gtol=1e-8, max_iter=1000, newton_steps=30, restarts=20,
              progress=True, start=None):
     """Mode of the potential: L-BFGS from ``start`` (default ``space.initial``), then (given
-    ``hessian_fn``) Newton steps while the Hessian is positive definite and they lower the
-    potential and its gradient; a trial point the model refuses is an infinite potential
-    (rejected), never an error, and a refused Newton step is halved (REFUSED_HALVINGS). Returns (z, potential, gradient, Hessian or None, gradient
-    evaluations)."""
+    ``hessian_fn``) at most ``newton_steps`` trust-region Newton trials on that Hessian
+    (``trust_region.polish``: a saddle or an early stop with an indefinite Hessian is followed
+    down to a mode); a trial point the model refuses is an infinite potential (rejected, the
+    trust region shrinks), never an error. Returns (z, potential, gradient, Hessian or None,
+    gradient evaluations)."""
     def value_and_grad(x):
         """A trial step into parameters the model refuses (non-finite or not positive
         definite) is an infinite potential: the line search backs off from it."""
@@ -77,21 +79,9 @@ def find_map(space, hessian_fn=None, gtol=1e-8, max_iter=1000, newton_steps=5, r
     u, g = _grad(space, z)
     evaluations += 1
     h = None if hessian_fn is None else hessian_fn(z)
-    for _ in range(newton_steps if h is not None else 0):
-        chol, info = torch.linalg.cholesky_ex((h + h.T) / 2)
-        if info:  # not a minimum's curvature: leave it to Gaussian to refuse
-            break
-        step = torch.cholesky_solve(g[:, None], chol)[:, 0]
-        for _ in range(REFUSED_HALVINGS + 1):  # a step into refused parameters is halved
-            z_new = z - step
-            u_new, g_new = grad_or_refused(space, z_new)
-            evaluations += 1
-            if g_new is not None:
-                break
-            step = step / 2
-        if g_new is None or not (u_new <= u and g_new.norm() < g.norm()):
-            break
-        z, u, g, h = z_new, u_new, g_new, hessian_fn(z_new)
+    if h is not None:
+        z, u, g, h, trials = polish(partial(grad_or_refused, space), hessian_fn, z, u, g, h, newton_steps)
+        evaluations += trials
     _warn_if_not_a_mode(g, h, u, res)
     return z, float(u), g, h, evaluations
 

@@ -105,12 +105,12 @@ def test_map_search_backs_off_from_refused_parameters():
     assert 1.9 < float(z[0]) <= 2
 
 
-def test_a_refused_newton_step_is_halved_not_raised():
+def test_a_refused_newton_step_shrinks_the_trust_region_not_raised():
     """U = log cosh(z - 1) with z > 3 refused (as a kernel with m <= 0 is): L-BFGS stopped
     after one iteration at z = -1, where the exact Newton step is s = tanh(2) cosh^2(2) =
-    sinh(2) cosh(2) = 13.6. z - 1 + s = 12.6 and -1 + s/2 = 5.8 are refused, so the step is
-    halved (no error raised) to -1 + s/4 = 2.41, which lowers U and |grad|; the next full step
-    (to -1.78) raises U and ends the search there, which says it did not reach a mode."""
+    sinh(2) cosh(2) = 13.6 (the first trust radius). z = -1 + s is refused (no error raised),
+    so the radius falls to s/4 and the next trial is -1 + s/4 = 2.41, which is accepted; the
+    polish then reaches the mode z = 1 (|grad| to rounding, no warning)."""
     tried = []
 
     def f(z):
@@ -118,13 +118,14 @@ def test_a_refused_newton_step_is_halved_not_raised():
         if float(z.detach().max()) > 3:
             raise ParameterRangeError("the weighted volume m must be positive")
         return torch.log(torch.cosh(z - 1)).sum()
-    with pytest.warns(RuntimeWarning, match="gradient does not vanish"):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
         z, u, g, h, _ = find_map(_Potential(f, [-6.0]), hessian_fn=lambda z: torch.diag(torch.cosh(z - 1) ** -2),
                                  max_iter=1, restarts=1, progress=False)
     s = float(np.sinh(2.0) * np.cosh(2.0))
-    assert tried[-4:-1] == pytest.approx([-1 + s, -1 + s / 2, -1 + s / 4], rel=1e-12)
-    assert float(z[0]) == pytest.approx(-1 + s / 4, rel=1e-12)
-    assert u == pytest.approx(float(np.log(np.cosh(s / 4 - 2))), rel=1e-12)
+    start = next(i for i, t in enumerate(tried) if t == pytest.approx(-1 + s, rel=1e-12))
+    assert tried[start:start + 2] == pytest.approx([-1 + s, -1 + s / 4], rel=1e-12)
+    assert abs(float(z[0]) - 1) < 1e-9 and float(g.abs().max()) < 1e-9
 
 
 def test_prior_starts_are_a_latin_hypercube():
