@@ -180,7 +180,8 @@ def bayes(best, data, quick):
                predictive=False, init_values={k: torch.as_tensor(v) for k, v in init.items()})
     wall = time.perf_counter() - t
     post = tree["posterior"]
-    draws = {k: post[k].values.reshape(-1, *post[k].shape[2:]) for k in ("lam_plus_mu", "mu", "delta", "shape", "sigma")}
+    draws = {k: post[k].values.reshape(-1, *post[k].shape[2:])
+             for k in ("lam_plus_mu", "mu", "delta", "shape", "sigma")}
     draws["D"] = plane.coefficients(torch.as_tensor(draws["shape"])).numpy()
     fv, uv = data["validation"]
     yv = sheet.zero_mean(uv).numpy()

@@ -2,10 +2,10 @@
 
 ``find_map``: L-BFGS on the potential U(z) = -log p(y, z), restarted while it still falls
 (a line search that meets a kink stops early), then trust-region Newton steps on the
-Laplace step's Hessian (``trust_region``). ``best_map``: the lowest of several searches, from the initial point and from a Latin hypercube of prior draws. A
-PD likelihood can have several basins in delta, split by kinks where a bond length crosses
-delta +- h/2 (the partial-volume weights are piecewise linear in delta): on the 64-particle
-calibration plate, searches from the prior median end in one of three basins with
+Laplace step's Hessian (``trust_region``). ``best_map``: the lowest of several searches,
+from the initial point and from a Latin hypercube of prior draws. A PD likelihood can have
+several basins in delta, split by kinks where a bond length crosses delta +- h/2 (the
+partial-volume weights are piecewise linear in delta): on the 64-particle calibration plate, searches from the prior median end in one of three basins with
 potentials up to 120 nats apart, the lowest usually near the true delta, and a chain started in
 another stays there (``experiments/sbc.py --free-delta``).
 """

@@ -73,8 +73,8 @@ def test_laplace_from_a_saddle_reaches_a_mode_with_the_analytic_covariance():
     (|U'''| = 6 K |z1| <= 12); the covariance moves by |U'''| |z - z*| |H^-1|^2 < 1e-10."""
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        space, gaussian, info = laplace(double_well, {}, init_to_value(values={"z": torch.zeros(2, dtype=torch.float64)}),
-                                        progress=False)
+        saddle = init_to_value(values={"z": torch.zeros(2, dtype=torch.float64)})
+        space, gaussian, info = laplace(double_well, {}, saddle, progress=False)
     sign = 1.0 if float(gaussian.mean[0]) > 0 else -1.0
     mode = sign * torch.tensor([1.0, C], dtype=torch.float64)
     assert torch.allclose(gaussian.mean, mode, atol=1e-10, rtol=0)
