@@ -5,9 +5,10 @@
 Laplace step's Hessian (``trust_region``). ``best_map``: the lowest of several searches,
 from the initial point and from a Latin hypercube of prior draws. A PD likelihood can have
 several basins in delta, split by kinks where a bond length crosses delta +- h/2 (the
-partial-volume weights are piecewise linear in delta): on the 64-particle calibration plate, searches from the prior median end in one of three basins with
-potentials up to 120 nats apart, the lowest usually near the true delta, and a chain started in
-another stays there (``experiments/sbc.py --free-delta``).
+partial-volume weights are piecewise linear in delta): on the 64-particle calibration plate,
+searches from the prior median end in one of three basins with potentials up to 120 nats apart,
+the lowest usually near the true delta, and a chain started in another stays there
+(``experiments/sbc.py --free-delta``).
 """
 
 import json
