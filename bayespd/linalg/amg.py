@@ -62,8 +62,8 @@ def rigid_body_modes(x: np.ndarray, component: np.ndarray | None = None) -> np.n
 def pair_rows(g, w) -> np.ndarray:
     """Rows of a term's operator that enter K_b: those touching two particles (bonds) whose
     weight is >= 0 (a negative weight counts as 0 in K_b, so its row is left out)."""
-    _, ptr = g.block_parts()
-    return np.flatnonzero((np.diff(ptr) == 2) & (np.asarray(w) >= 0))
+    two = g.two_block_rows
+    return two[np.asarray(w)[two] >= 0]
 
 
 def pair_operator(terms, free_index: np.ndarray) -> sp.csr_matrix:
@@ -76,8 +76,8 @@ def pair_operator(terms, free_index: np.ndarray) -> sp.csr_matrix:
             continue
         A = g.operator(d)
         A = (A[two] if len(two) < A.shape[0] else A)[:, free_index]
-        WA = A.copy()
-        WA.data *= np.repeat(np.asarray(w, dtype=np.float64)[two], np.diff(A.indptr))
+        weights = np.repeat(np.asarray(w, dtype=np.float64)[two], np.diff(A.indptr))
+        WA = sp.csr_matrix((A.data * weights, A.indices, A.indptr), shape=A.shape, copy=False)
         part = A.T.tocsr() @ WA
         K = part if K is None else K + part
     if K is None:
@@ -142,7 +142,7 @@ def bond_ends(terms) -> tuple[np.ndarray, np.ndarray]:
     ends = []
     for g, _, w in terms:
         ind, ptr = g.block_parts()
-        two = np.flatnonzero((np.diff(ptr) == 2) & (np.asarray(w) > 0))
+        two = g.two_block_rows[np.asarray(w)[g.two_block_rows] > 0]
         ends.append((ind[ptr[two]], ind[ptr[two] + 1]))
     return np.concatenate([a for a, _ in ends]), np.concatenate([b for _, b in ends])
 
