@@ -19,6 +19,8 @@ cores a second BLAS thread made pyamg's set-up 10x and each cycle 4x slower.
 """
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
@@ -131,8 +133,7 @@ def amg_preconditioner(terms, free_index: np.ndarray, positions: np.ndarray,
     modes = rigid_body_modes(positions)[free_index]
     aggregates = None
     if positions.shape[1] == 2:
-        i, j = bond_ends(terms)
-        aggregates = cell_aggregates(positions, i, j, np.asarray(free_index) // 2)
+        aggregates = lambda: cell_aggregates(positions, *bond_ends(terms), np.asarray(free_index) // 2)  # noqa: E731
     return v_cycle(pair_operator(terms, free_index) if pair is None else pair, modes, aggregates)
 
 
@@ -162,21 +163,25 @@ def cell_aggregates(positions: np.ndarray, i: np.ndarray, j: np.ndarray,
     x = np.asarray(positions, dtype=np.float64)
     if len(i) == 0:
         raise ValueError("no bonds with a positive weight to aggregate the particles by")
-    length = np.linalg.norm(x[j] - x[i], axis=1)
-    h, r = float(length.min()), float(length.max())
+    xi = x[j] - x[i]
+    squared = np.einsum("bk,bk->b", xi, xi)
+    h, r = float(np.sqrt(squared.min())), float(np.sqrt(squared.max()))
     side = h * np.floor(3 * r / h)
     cell = np.floor((x - x.min(axis=0) + h / 2) / side).astype(np.int64)  # no particle on a cell face
     cell = np.ravel_multi_index(cell.T, cell.max(axis=0) + 1)
     inside = cell[i] == cell[j]
     n = len(x)
     graph = sp.csr_matrix((np.ones(int(inside.sum())), (i[inside], j[inside])), shape=(n, n))
-    _, part = connected_components(graph, directed=False)
-    _, aggregate = np.unique(part[dof_particle], return_inverse=True)
+    count, part = connected_components(graph, directed=False)
+    part = part[dof_particle]
+    used = np.zeros(count, dtype=bool)
+    used[part] = True
+    aggregate = (np.cumsum(used) - 1)[part]  # the parts that hold a dof, numbered in order
     rows = np.arange(len(aggregate))
     return sp.csr_matrix((np.ones(len(rows)), (rows, aggregate)), shape=(len(rows), aggregate.max() + 1))
 
 
-def v_cycle(K: sp.csr_matrix, modes: np.ndarray, aggregates: sp.csr_matrix | None = None) -> VCycle:
+def v_cycle(K: sp.csr_matrix, modes: np.ndarray, aggregates=None) -> VCycle:
     """The V-cycle of smoothed aggregation on an SPD matrix K with near-null space ``modes``
     (its rigid-body modes, for elasticity); ``aggregates``: the finest level's (default:
     pyamg's standard aggregation)."""
@@ -186,30 +191,36 @@ def v_cycle(K: sp.csr_matrix, modes: np.ndarray, aggregates: sp.csr_matrix | Non
 
 def smoothed_aggregation(K: sp.csr_matrix, modes: np.ndarray, max_coarse: int = 300,
                          max_levels: int = 10, omega: float = 4.0 / 3.0,
-                         aggregates: sp.csr_matrix | None = None):
+                         aggregates=None):
     """([(A, P, R) per level], coarsest A): pyamg's smoothed aggregation with its defaults
     (coarsening while a level has more than ``max_coarse`` nodes, a coarse node being the
     len(modes) dofs of one aggregate, aggregated whole; strength theta = 0, i.e. A's own pattern; standard aggregation; tentative prolongator T
     fitted to ``modes``; one Jacobi step P = T - omega / rho(D^-1 A) D^-1 A T), the products
     in CSR (pyamg's 1 x 1-block BSR products took half its set-up) and rho by a seeded Lanczos
-    on D^-1/2 A D^-1/2 (same spectrum, symmetric). ``aggregates``: the finest level's, as
-    (dofs, aggregates) CSR with one 1 per row (``cell_aggregates``) instead of pyamg's."""
+    on D^-1/2 A D^-1/2 (same spectrum, symmetric), estimated in a second thread while the
+    aggregates, T and A T are made. ``aggregates``: the finest level's, as (dofs, aggregates)
+    CSR with one 1 per row (``cell_aggregates``) instead of pyamg's, or a function of nothing
+    that makes them (then called beside the rho estimate)."""
     A, B, levels = sp.csr_matrix(K), np.asarray(modes, dtype=np.float64), []
     A.sort_indices()  # in place (no copy; a no-op when sorted): aggregation visits neighbours in index order: unsorted products cost 2 iterations
-    while A.shape[0] // (B.shape[1] if levels else 1) > max_coarse and len(levels) < max_levels - 1:
-        if aggregates is None or levels:
-            aggregates, _ = pyamg.aggregation.standard_aggregation(_node_graph(A, B.shape[1] if levels else 1))
-        T, B = pyamg.aggregation.fit_candidates(aggregates, B)
-        T = T.tocsr()
-        d = A.diagonal()
-        d_inv = np.divide(1.0, d, out=np.zeros_like(d), where=d != 0)  # a dof no bond reaches: T's row is 0
-        AT = A @ T
-        AT = sp.diags(d_inv * (omega / _jacobi_radius(A, d_inv))) @ AT
-        P = (T - AT).tocsr()
-        del AT, T
-        R = P.T.tocsr()
-        levels.append((A, P, R))
-        A = (R @ (A @ P)).tocsr()
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="bayespd-amg") as helper:  # per call: no pool to outlive a fork
+        while A.shape[0] // (B.shape[1] if levels else 1) > max_coarse and len(levels) < max_levels - 1:
+            d = A.diagonal()
+            d_inv = np.divide(1.0, d, out=np.zeros_like(d), where=d != 0)  # a dof no bond reaches: T's row is 0
+            rho = helper.submit(_jacobi_radius, A, d_inv)  # beside the aggregation and A T
+            if callable(aggregates) and not levels:
+                aggregates = aggregates()
+            elif aggregates is None or levels:
+                aggregates, _ = pyamg.aggregation.standard_aggregation(_node_graph(A, B.shape[1] if levels else 1))
+            T, B = pyamg.aggregation.fit_candidates(aggregates, B)
+            T = T.tocsr()
+            AT = A @ T
+            AT = sp.diags(d_inv * (omega / rho.result())) @ AT
+            P = (T - AT).tocsr()
+            del AT, T
+            R = P.T.tocsr()
+            levels.append((A, P, R))
+            A = (R @ (A @ P)).tocsr()
     return levels, A
 
 
