@@ -200,7 +200,11 @@ def smoothed_aggregation(K: sp.csr_matrix, modes: np.ndarray, max_coarse: int = 
     on D^-1/2 A D^-1/2 (same spectrum, symmetric), estimated in a second thread while the
     aggregates, T and A T are made. ``aggregates``: the finest level's, as (dofs, aggregates)
     CSR with one 1 per row (``cell_aggregates``) instead of pyamg's, or a function of nothing
-    that makes them (then called beside the rho estimate)."""
+    that makes them (then called beside the rho estimate); used when they leave more than
+    ``max_coarse`` coarse nodes, i.e. a coarse level that is coarsened again. Below that the
+    method has two levels and pyamg's smaller aggregates give a larger coarse level, solved
+    exactly, in fewer iterations (three-point beam, 16k particles, m = 4: 12 against 17;
+    benchmarks/README.md, issue 31, fifth pass)."""
     A, B, levels = sp.csr_matrix(K), np.asarray(modes, dtype=np.float64), []
     A.sort_indices()  # in place (no copy; a no-op when sorted): aggregation visits neighbours in index order: unsorted products cost 2 iterations
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="bayespd-amg") as helper:  # per call: no pool to outlive a fork
@@ -210,7 +214,9 @@ def smoothed_aggregation(K: sp.csr_matrix, modes: np.ndarray, max_coarse: int = 
             rho = helper.submit(_jacobi_radius, A, d_inv)  # beside the aggregation and A T
             if callable(aggregates) and not levels:
                 aggregates = aggregates()
-            elif aggregates is None or levels:
+            if aggregates is not None and not levels and aggregates.shape[1] <= max_coarse:
+                aggregates = None  # a two-level method: its coarse level is solved exactly
+            if aggregates is None or levels:
                 aggregates, _ = pyamg.aggregation.standard_aggregation(_node_graph(A, B.shape[1] if levels else 1))
             T, B = pyamg.aggregation.fit_candidates(aggregates, B)
             T = T.tocsr()

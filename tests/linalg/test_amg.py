@@ -212,8 +212,27 @@ def test_cell_aggregates_couple_only_neighbouring_cells_on_the_coarse_level():
     K = pair_operator(terms, asm.free_index)
     modes = rigid_body_modes(p.x)[asm.free_index]
     agg = cell_aggregates(p.x, *bond_ends(terms), asm.free_index // 2)
-    _, coarse = smoothed_aggregation(K, modes, aggregates=agg)
-    assert coarse.shape[0] == 3 * agg.shape[1]
-    assert np.diff(coarse.tocsr().indptr).max() == 27
-    _, standard = smoothed_aggregation(K, modes)
-    assert np.diff(standard.tocsr().indptr).max() > 27
+    assert agg.shape[1] > 20  # cells are used when the coarse level is coarsened again
+    levels, coarse = smoothed_aggregation(K, modes, aggregates=agg, max_coarse=20)
+    first = levels[1][0] if len(levels) > 1 else coarse
+    assert first.shape[0] == 3 * agg.shape[1]
+    assert np.diff(first.tocsr().indptr).max() == 27
+    levels, coarse = smoothed_aggregation(K, modes, max_coarse=20)
+    assert np.diff((levels[1][0] if len(levels) > 1 else coarse).tocsr().indptr).max() > 27
+
+
+def test_few_cells_leave_the_two_level_method_to_pyamgs_aggregates():
+    """Cells that leave at most max_coarse coarse nodes are not used: the method would have
+    two levels, and pyamg's smaller aggregates give a larger exactly solved coarse level
+    (fewer iterations). The hierarchy is then pyamg's, entry for entry."""
+    from bayespd.linalg.amg import bond_ends, cell_aggregates, smoothed_aggregation
+
+    p, asm, terms = clamped(nx=60, ny=36)
+    terms = [(g, d.numpy(), w.numpy()) for g, d, w in terms]
+    K = pair_operator(terms, asm.free_index)
+    modes = rigid_body_modes(p.x)[asm.free_index]
+    agg = cell_aggregates(p.x, *bond_ends(terms), asm.free_index // 2)
+    assert agg.shape[1] <= 300
+    (_, P, _), = smoothed_aggregation(K, modes, aggregates=agg)[0]
+    (_, P0, _), = smoothed_aggregation(K, modes)[0]
+    assert P.shape == P0.shape and abs(P - P0).max() == 0
