@@ -10,7 +10,9 @@ For each particle count, m = delta/h, material (LPS or bond-based PMB) and solve
   Cholesky factor of the preconditioner (PCG);
 * solve: one right-hand side (PCG: the iterations, to the relative residual a Scene stops
   at, ``SCENE_RTOL`` = 1e-8);
-* total = the four; peak resident memory of the process; relative residual ||K u - f||/||f||.
+* total = the four (wall), and the process's CPU seconds over them (``cpu``: both threads,
+  system time included; steadier than wall on a shared host); peak resident memory of the
+  process; relative residual ||K u - f||/||f||.
 
 Each configuration runs in its own process so that peak memory is its own.
 
@@ -54,7 +56,7 @@ def run_one(n: int, m: float, material: str, solver: str, threads: int, scene: b
     h = 1.0
     out = {"particles": side * side, "m": m, "material": material, "solver": solver,
            "threads": threads, "load": os.getloadavg()[0]}
-    t_all = time.perf_counter()
+    t_all, cpu_all = time.perf_counter(), time.process_time()
     t0 = time.perf_counter()
     p = bp.grid_2d(side * h, side * h, h)
     bonds = bp.find_bonds(p, m * h)
@@ -100,6 +102,7 @@ def run_one(n: int, m: float, material: str, solver: str, threads: int, scene: b
     u = factor.solve(f)
     out["solve_s"] = time.perf_counter() - t0
     out["total_s"] = time.perf_counter() - t_all
+    out["total_cpu_s"] = time.process_time() - cpu_all
     if not direct:
         out["iterations"] = factor.iterations
     check = asm.operator([(g, d.detach().numpy(), w.detach().numpy()) for g, d, w in terms])
@@ -113,12 +116,12 @@ def run_one(n: int, m: float, material: str, solver: str, threads: int, scene: b
         q = {"K": torch.tensor(3333.0, requires_grad=True), "G": torch.tensor(1538.0, requires_grad=True),
              "delta": torch.tensor(m * h, requires_grad=True)}
         q = {k: q[k] for k in sc.param_names}
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         us = sc.solve(q)
-        out["scene_solve_s"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
+        out["scene_solve_s"], out["scene_solve_cpu_s"] = time.perf_counter() - t0, time.process_time() - c0
+        t0, c0 = time.perf_counter(), time.process_time()
         us[:, 0].sum().backward()
-        out["gradient_s"] = time.perf_counter() - t0
+        out["gradient_s"], out["gradient_cpu_s"] = time.perf_counter() - t0, time.process_time() - c0
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return out
 
@@ -148,7 +151,7 @@ def main():
     from bayespd.linalg import sparse
     solvers = [s for s in args.solvers if s != "cholmod" or sparse.cholmod is not None]
     print(f"{'particles':>9} {'m':>3} {'mat':>4} {'solver':>9} {'nnz':>10} {'setup':>6} {'assem':>6} "
-          f"{'factor':>7} {'solve':>6} {'total':>7} {'its':>4} {'resid':>8} {'peak MB':>8} {'load':>5}")
+          f"{'factor':>7} {'solve':>6} {'total':>7} {'cpu':>6} {'its':>4} {'resid':>8} {'peak MB':>8} {'load':>5}")
     for n in args.sizes:
         for m in args.m:
             for material in args.materials:
@@ -179,10 +182,11 @@ def main():
                     extra = ""
                     if "scene_solve_s" in r:
                         extra = (f"  scene {r['scene_solve_s']:.2f} grad {r['gradient_s']:.2f} "
-                                 f"(ratio {r['gradient_s'] / r['scene_solve_s']:.2f})")
+                                 f"(ratio {r['gradient_s'] / r['scene_solve_s']:.2f}, CPU "
+                                 f"{r['gradient_cpu_s'] / r['scene_solve_cpu_s']:.2f})")
                     print(f"{r['particles']:>9} {m:>3g} {material:>4} {s:>9} {r.get('nnz', 0):>10} "
                           f"{r['setup_s']:>6.2f} {r['assemble_s']:>6.2f} {r['factorise_s']:>7.2f} "
-                          f"{r['solve_s']:>6.2f} {r['total_s']:>7.2f} {r.get('iterations', ''):>4} "
+                          f"{r['solve_s']:>6.2f} {r['total_s']:>7.2f} {r['total_cpu_s']:>6.2f} {r.get('iterations', ''):>4} "
                           f"{r['rel_residual']:>8.1e} {r['peak_rss_mb']:>8.0f} {r['load']:>5.2f}{extra}", flush=True)
 
 

@@ -1,7 +1,8 @@
 """Algebraic-multigrid preconditioner for the matrix-free PCG of a Gram-sum stiffness.
 
 Smoothed aggregation (Vanek, Mandel & Brezina 1996; pyamg's defaults and its aggregation and
-candidate fit, the rest in ``smoothed_aggregation``) on the *pair operator*
+candidate fit, the rest in ``smoothed_aggregation``; in 2D the finest level aggregated by
+cells of particles, ``cell_aggregates``) on the *pair operator*
 K_b = sum_t A_t^T diag(max(w_t, 0)) A_t over the rows of A_t that touch two particles (the
 bonds): the whole stiffness of a bond-based law, the bond part of LPS (its dilatation rows are
 left out: they couple whole families, and K - K_b is positive semi-definite). The near-null
@@ -18,9 +19,12 @@ cores a second BLAS thread made pyamg's set-up 10x and each cycle 4x slower.
 """
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
 from threadpoolctl import ThreadpoolController
 
 import pyamg
@@ -60,8 +64,8 @@ def rigid_body_modes(x: np.ndarray, component: np.ndarray | None = None) -> np.n
 def pair_rows(g, w) -> np.ndarray:
     """Rows of a term's operator that enter K_b: those touching two particles (bonds) whose
     weight is >= 0 (a negative weight counts as 0 in K_b, so its row is left out)."""
-    _, ptr = g.block_parts()
-    return np.flatnonzero((np.diff(ptr) == 2) & (np.asarray(w) >= 0))
+    two = g.two_block_rows
+    return two[np.asarray(w)[two] >= 0]
 
 
 def pair_operator(terms, free_index: np.ndarray) -> sp.csr_matrix:
@@ -74,8 +78,8 @@ def pair_operator(terms, free_index: np.ndarray) -> sp.csr_matrix:
             continue
         A = g.operator(d)
         A = (A[two] if len(two) < A.shape[0] else A)[:, free_index]
-        WA = A.copy()
-        WA.data *= np.repeat(np.asarray(w, dtype=np.float64)[two], np.diff(A.indptr))
+        weights = np.repeat(np.asarray(w, dtype=np.float64)[two], np.diff(A.indptr))
+        WA = sp.csr_matrix((A.data * weights, A.indices, A.indptr), shape=A.shape, copy=False)
         part = A.T.tocsr() @ WA
         K = part if K is None else K + part
     if K is None:
@@ -121,41 +125,108 @@ class VCycle:
 def amg_preconditioner(terms, free_index: np.ndarray, positions: np.ndarray,
                        pair: sp.csr_matrix | None = None) -> VCycle:
     """The V-cycle of smoothed aggregation on K_b (``pair``, by default ``pair_operator``)
-    with the rigid-body modes of ``positions`` (N, dim) as near-null space."""
-    modes = rigid_body_modes(np.asarray(positions, dtype=np.float64))[free_index]
-    return v_cycle(pair_operator(terms, free_index) if pair is None else pair, modes)
+    with the rigid-body modes of ``positions`` (N, dim) as near-null space; in 2D the finest
+    level aggregated by cells (``cell_aggregates``), in 3D by pyamg's standard aggregation
+    (cells of the same rule gave 24 PCG iterations against its 16 on the cantilever of
+    ``fe_convergence``, 20k particles, m = 2; side 4 h gave 15 and no cheaper set-up)."""
+    positions = np.asarray(positions, dtype=np.float64)
+    modes = rigid_body_modes(positions)[free_index]
+    aggregates = None
+    if positions.shape[1] == 2:
+        aggregates = lambda: cell_aggregates(positions, *bond_ends(terms), np.asarray(free_index) // 2)  # noqa: E731
+    return v_cycle(pair_operator(terms, free_index) if pair is None else pair, modes, aggregates)
 
 
-def v_cycle(K: sp.csr_matrix, modes: np.ndarray) -> VCycle:
+def bond_ends(terms) -> tuple[np.ndarray, np.ndarray]:
+    """Particles (i, j) at the ends of the two-particle rows with a positive weight (the
+    bonds that K_b holds) of every (gram, data, w) term."""
+    ends = []
+    for g, _, w in terms:
+        ind, ptr = g.block_parts()
+        two = g.two_block_rows[np.asarray(w)[g.two_block_rows] > 0]
+        ends.append((ind[ptr[two]], ind[ptr[two] + 1]))
+    return np.concatenate([a for a, _ in ends]), np.concatenate([b for _, b in ends])
+
+
+def cell_aggregates(positions: np.ndarray, i: np.ndarray, j: np.ndarray,
+                    dof_particle: np.ndarray) -> sp.csr_matrix:
+    """The finest level's aggregates, (dofs, aggregates) with one 1 per row: the particles
+    of one cubic cell of side s h, split into the parts the bonds (i, j) inside the cell
+    connect (a crack or a hole through a cell gives two aggregates); each dof goes with its
+    particle (``dof_particle``). h and r are the shortest and longest bond. One Jacobi step
+    spreads a prolongator column r beyond its cell and K_b couples within r, so two cells
+    couple on the coarse level when their particles lie within 3 r of each other; the
+    smallest s with (s + 1) h > 3 r, s = floor(3 r / h), leaves only the 3^d neighbouring
+    cells coupled: at 160k particles, m = 2, a coarse level of 0.36 M entries and 17 PCG
+    iterations against pyamg's standard aggregation's 1.75 M and 19 (benchmarks/README.md,
+    issue 31, fifth pass)."""
+    x = np.asarray(positions, dtype=np.float64)
+    if len(i) == 0:
+        raise ValueError("no bonds with a positive weight to aggregate the particles by")
+    xi = x[j] - x[i]
+    squared = np.einsum("bk,bk->b", xi, xi)
+    h, r = float(np.sqrt(squared.min())), float(np.sqrt(squared.max()))
+    side = h * np.floor(3 * r / h)
+    cell = np.floor((x - x.min(axis=0) + h / 2) / side).astype(np.int64)  # no particle on a cell face
+    cell = np.ravel_multi_index(cell.T, cell.max(axis=0) + 1)
+    inside = cell[i] == cell[j]
+    n = len(x)
+    graph = sp.csr_matrix((np.ones(int(inside.sum())), (i[inside], j[inside])), shape=(n, n))
+    count, part = connected_components(graph, directed=False)
+    part = part[dof_particle]
+    used = np.zeros(count, dtype=bool)
+    used[part] = True
+    aggregate = (np.cumsum(used) - 1)[part]  # the parts that hold a dof, numbered in order
+    rows = np.arange(len(aggregate))
+    return sp.csr_matrix((np.ones(len(rows)), (rows, aggregate)), shape=(len(rows), aggregate.max() + 1))
+
+
+def v_cycle(K: sp.csr_matrix, modes: np.ndarray, aggregates=None) -> VCycle:
     """The V-cycle of smoothed aggregation on an SPD matrix K with near-null space ``modes``
-    (its rigid-body modes, for elasticity)."""
+    (its rigid-body modes, for elasticity); ``aggregates``: the finest level's (default:
+    pyamg's standard aggregation)."""
     with one_blas_thread():
-        return VCycle(*smoothed_aggregation(K, modes))
+        return VCycle(*smoothed_aggregation(K, modes, aggregates=aggregates))
 
 
 def smoothed_aggregation(K: sp.csr_matrix, modes: np.ndarray, max_coarse: int = 300,
-                         max_levels: int = 10, omega: float = 4.0 / 3.0):
+                         max_levels: int = 10, omega: float = 4.0 / 3.0,
+                         aggregates=None):
     """([(A, P, R) per level], coarsest A): pyamg's smoothed aggregation with its defaults
     (coarsening while a level has more than ``max_coarse`` nodes, a coarse node being the
     len(modes) dofs of one aggregate, aggregated whole; strength theta = 0, i.e. A's own pattern; standard aggregation; tentative prolongator T
     fitted to ``modes``; one Jacobi step P = T - omega / rho(D^-1 A) D^-1 A T), the products
     in CSR (pyamg's 1 x 1-block BSR products took half its set-up) and rho by a seeded Lanczos
-    on D^-1/2 A D^-1/2 (same spectrum, symmetric)."""
+    on D^-1/2 A D^-1/2 (same spectrum, symmetric), estimated in a second thread while the
+    aggregates, T and A T are made. ``aggregates``: the finest level's, as (dofs, aggregates)
+    CSR with one 1 per row (``cell_aggregates``) instead of pyamg's, or a function of nothing
+    that makes them (then called beside the rho estimate); used when they leave more than
+    ``max_coarse`` coarse nodes, i.e. a coarse level that is coarsened again. Below that the
+    method has two levels and pyamg's smaller aggregates give a larger coarse level, solved
+    exactly, in fewer iterations (three-point beam, 16k particles, m = 4: 12 against 17;
+    benchmarks/README.md, issue 31, fifth pass)."""
     A, B, levels = sp.csr_matrix(K), np.asarray(modes, dtype=np.float64), []
     A.sort_indices()  # in place (no copy; a no-op when sorted): aggregation visits neighbours in index order: unsorted products cost 2 iterations
-    while A.shape[0] // (B.shape[1] if levels else 1) > max_coarse and len(levels) < max_levels - 1:
-        aggregates, _ = pyamg.aggregation.standard_aggregation(_node_graph(A, B.shape[1] if levels else 1))
-        T, B = pyamg.aggregation.fit_candidates(aggregates, B)
-        T = T.tocsr()
-        d = A.diagonal()
-        d_inv = np.divide(1.0, d, out=np.zeros_like(d), where=d != 0)  # a dof no bond reaches: T's row is 0
-        AT = A @ T
-        AT = sp.diags(d_inv * (omega / _jacobi_radius(A, d_inv))) @ AT
-        P = (T - AT).tocsr()
-        del AT, T
-        R = P.T.tocsr()
-        levels.append((A, P, R))
-        A = (R @ (A @ P)).tocsr()
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="bayespd-amg") as helper:  # per call: no pool to outlive a fork
+        while A.shape[0] // (B.shape[1] if levels else 1) > max_coarse and len(levels) < max_levels - 1:
+            d = A.diagonal()
+            d_inv = np.divide(1.0, d, out=np.zeros_like(d), where=d != 0)  # a dof no bond reaches: T's row is 0
+            rho = helper.submit(_jacobi_radius, A, d_inv)  # beside the aggregation and A T
+            if callable(aggregates) and not levels:
+                aggregates = aggregates()
+            if aggregates is not None and not levels and aggregates.shape[1] <= max_coarse:
+                aggregates = None  # a two-level method: its coarse level is solved exactly
+            if aggregates is None or levels:
+                aggregates, _ = pyamg.aggregation.standard_aggregation(_node_graph(A, B.shape[1] if levels else 1))
+            T, B = pyamg.aggregation.fit_candidates(aggregates, B)
+            T = T.tocsr()
+            AT = A @ T
+            AT = sp.diags(d_inv * (omega / rho.result())) @ AT
+            P = (T - AT).tocsr()
+            del AT, T
+            R = P.T.tocsr()
+            levels.append((A, P, R))
+            A = (R @ (A @ P)).tocsr()
     return levels, A
 
 

@@ -134,9 +134,24 @@ class Gram:
     # --- node-block (BSR) form, used when self.block > 1 -------------------------------------
 
     def block_parts(self):
-        """(indices, indptr) of A as a BSR matrix of 1 x b blocks (b = self.block)."""
+        """(indices, indptr) of A as a BSR matrix of 1 x b blocks (b = self.block); kept, since
+        the structure never changes (read-only: every caller shares them)."""
+        return self._block_parts
+
+    @cached_property
+    def two_block_rows(self) -> np.ndarray:
+        """The rows of A that touch two particles (blocks): bonds (read-only, kept)."""
+        rows = np.flatnonzero(np.diff(self._block_parts[1]) == 2)
+        rows.flags.writeable = False
+        return rows
+
+    @cached_property
+    def _block_parts(self):
         b = self.block
-        return self.cols[::b] // b, self.indptr // b
+        parts = self.cols[::b] // b, self.indptr // b
+        for a in parts:
+            a.flags.writeable = False
+        return parts
 
     def _block_data(self, data, w=None) -> np.ndarray:
         """diag(w) A's entries in row-major order, as (nnz / b, 1, b) blocks."""

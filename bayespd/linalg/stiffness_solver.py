@@ -190,7 +190,7 @@ class Assembly:
         pi, pj, pw = [], [], []
         for g, d, w in terms:
             ind, ptr = g.block_parts()
-            two = np.flatnonzero(np.diff(ptr) == 2)
+            two = g.two_block_rows
             if rows is not None and g in rows:
                 two = two[np.asarray(rows[g], dtype=bool)[two]]
             if len(two) == 0:

@@ -86,7 +86,7 @@ class Material(ABC):
         w = self.influence(self.length, delta, params) * self.bonds.weight(delta)
         V = self.volume
         family = torch.zeros(self.particles.n, dtype=w.dtype).index_add(
-            0, self.i, w.abs() * V[self.j]).index_add(0, self.j, w.abs() * V[self.i])
+            0, self.i, w.abs() * V.index_select(0, self.j)).index_add(0, self.j, w.abs() * V.index_select(0, self.i))
         if bool(torch.any(family == 0)):
             k = int(torch.nonzero(family == 0)[0])
             raise ValueError(f"particle {k} at {self.particles.x[k].tolist()} has an empty family "

@@ -79,7 +79,8 @@ class LPS(Material):
 
     def _family_volume(self, w: torch.Tensor) -> torch.Tensor:
         wL2 = w * self.length**2
-        return self._family_sum(wL2 * self.volume[self.j], wL2 * self.volume[self.i])
+        V = self.volume
+        return self._family_sum(wL2 * V.index_select(0, self.j), wL2 * V.index_select(0, self.i))
 
     def weighted_volume(self, w: torch.Tensor) -> torch.Tensor:
         """m_i = sum_j omega beta |xi|^2 V_j (Turner 2015 eq 9) for bond weights w."""
@@ -91,10 +92,10 @@ class LPS(Material):
 
     def _dilatation_vectors(self, w, m):
         """g_e with theta_i = sum_e g_e . u_node(e) (Turner 2015 eq 10), in the Gram's order."""
-        d, V = self.dim, self.volume
-        wL = d * w * self.length
-        g_i = (wL * V[self.j] / m[self.i])[:, None] * self.unit  # end (i, j)
-        g_j = -(wL * V[self.i] / m[self.j])[:, None] * self.unit  # end (j, i)
+        d, V, i, j = self.dim, self.volume, self.i, self.j
+        wL = d * w * self.length  # gathers by index_select: its backward is an index_add too
+        g_i = (wL * V.index_select(0, j) / m.index_select(0, i))[:, None] * self.unit  # end (i, j)
+        g_j = -(wL * V.index_select(0, i) / m.index_select(0, j))[:, None] * self.unit  # end (j, i)
         g_self = -torch.zeros(self.particles.n, d, dtype=g_i.dtype).index_add_(
             0, self.i, g_i).index_add_(0, self.j, g_j)
         return torch.cat([g_i, g_j, g_self]).index_select(0, self._end_order)  # backward: index_add, 25 % less CPU than x[idx]
@@ -153,7 +154,8 @@ class LPS(Material):
             g = self._dilatation_vectors(w, m)
         V, i, j = self.volume, self.i, self.j
         s = V * (self.kappa(K, G) - c * G / d**2)
-        k_b = factor * c * w * V[i] * V[j] * (G[i] / m[i] + G[j] / m[j])
+        a = G / m  # per particle, then gathered: (G / m)[i] = G[i] / m[i] to the bit
+        k_b = factor * c * w * V.index_select(0, i) * V.index_select(0, j) * (a.index_select(0, i) + a.index_select(0, j))
         return [(self.extension_gram, self.extension_data, k_b), (self._dilatation, g.reshape(-1), s)]
 
     def nonlinear(self, kinematics, params, dtype=torch.float64):

@@ -174,3 +174,65 @@ def test_a_new_modulus_rescales_the_kept_bond_operator(material, changed):
     assert abs(K - fresh).max() <= 1e-15 * abs(fresh).max()
     asm.amg(mat.terms(dict(base, delta=2.3)), p.x)
     assert asm.amg_builds == 2
+
+
+def test_cell_aggregates_hold_whole_particles_of_one_cell_and_split_at_a_crack():
+    """m = 2 on the unit lattice: bonds from h = 1 to r = sqrt(5), cells of side
+    floor(3 r / h) = 6 h: a 24 x 12 plate gives 4 x 2 aggregates of 36 particles, both dofs
+    of a particle in its cell's aggregate; a crack through a cell splits its aggregate in two."""
+    from bayespd.linalg.amg import bond_ends, cell_aggregates
+
+    p = bp.grid_2d(24.0, 12.0, 1.0)
+    for crack, count in ((None, 8), ([[3.0, 0.0], [3.0, 6.0]], 9)):
+        bonds = bp.find_bonds(p, 2.0)
+        if crack is not None:
+            bonds = bp.precrack(p, bonds, crack)
+        mat = bp.LPS(p, bonds, plane="stress")
+        i, j = bond_ends(mat.terms({"K": 3000.0, "G": 1500.0, "delta": 2.0}))
+        agg = cell_aggregates(p.x, i, j, np.repeat(np.arange(p.n), 2)).tocsc()
+        assert agg.shape == (2 * p.n, count) and np.all(agg.sum(axis=1) == 1)
+        cells = np.floor(p.x / 6.0).astype(int)
+        for k in range(count):
+            dofs = agg.indices[agg.indptr[k]:agg.indptr[k + 1]]
+            particles = np.unique(dofs // 2)
+            assert len(dofs) == 2 * len(particles)  # whole particles
+            assert len(np.unique(cells[particles], axis=0)) == 1  # one cell
+            assert len(particles) == (18 if crack is not None and cells[particles[0]].sum() == 0 else 36)
+
+
+def test_cell_aggregates_couple_only_neighbouring_cells_on_the_coarse_level():
+    """With cells of side floor(3 r / h) h, two cells apart lie (s + 1) h > 3 r apart, beyond
+    one Jacobi step of the prolongator (r) on each side and K_b's reach (r): an interior
+    coarse row couples the 3 x 3 cells around it, 27 entries with 3 modes each (pyamg's
+    standard aggregation: irregular aggregates, more neighbours)."""
+    from bayespd.linalg.amg import bond_ends, cell_aggregates, smoothed_aggregation
+
+    p, asm, terms = clamped(nx=60, ny=36)
+    terms = [(g, d.numpy(), w.numpy()) for g, d, w in terms]
+    K = pair_operator(terms, asm.free_index)
+    modes = rigid_body_modes(p.x)[asm.free_index]
+    agg = cell_aggregates(p.x, *bond_ends(terms), asm.free_index // 2)
+    assert agg.shape[1] > 20  # cells are used when the coarse level is coarsened again
+    levels, coarse = smoothed_aggregation(K, modes, aggregates=agg, max_coarse=20)
+    first = levels[1][0] if len(levels) > 1 else coarse
+    assert first.shape[0] == 3 * agg.shape[1]
+    assert np.diff(first.tocsr().indptr).max() == 27
+    levels, coarse = smoothed_aggregation(K, modes, max_coarse=20)
+    assert np.diff((levels[1][0] if len(levels) > 1 else coarse).tocsr().indptr).max() > 27
+
+
+def test_few_cells_leave_the_two_level_method_to_pyamgs_aggregates():
+    """Cells that leave at most max_coarse coarse nodes are not used: the method would have
+    two levels, and pyamg's smaller aggregates give a larger exactly solved coarse level
+    (fewer iterations). The hierarchy is then pyamg's, entry for entry."""
+    from bayespd.linalg.amg import bond_ends, cell_aggregates, smoothed_aggregation
+
+    p, asm, terms = clamped(nx=60, ny=36)
+    terms = [(g, d.numpy(), w.numpy()) for g, d, w in terms]
+    K = pair_operator(terms, asm.free_index)
+    modes = rigid_body_modes(p.x)[asm.free_index]
+    agg = cell_aggregates(p.x, *bond_ends(terms), asm.free_index // 2)
+    assert agg.shape[1] <= 300
+    (_, P, _), = smoothed_aggregation(K, modes, aggregates=agg)[0]
+    (_, P0, _), = smoothed_aggregation(K, modes)[0]
+    assert P.shape == P0.shape and abs(P - P0).max() == 0
