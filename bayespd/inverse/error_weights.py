@@ -37,6 +37,9 @@ class ErrorWeights:
                                                                        for k, v in params.items()})
             self.scale = float(prediction.detach().square().mean().sqrt())
             d = diag[self.keep] + self.sigma**2
+            if not bool((d > 0).all()):
+                raise ValueError("the discrepancy's covariance is singular on some observed entries and sigma = 0: "
+                                 "pass the noise sd sigma > 0")
             B = factor[self.keep] / d.sqrt()[:, None]
             Q, S, _ = torch.linalg.svd(B, full_matrices=False)
             self.inv_sqrt_d, self.Q, self.shrink = d.rsqrt(), Q, (1 + S**2).rsqrt() - 1

@@ -124,8 +124,8 @@ class Objective:
             raise ValueError("a parameter cannot be both estimated and fixed")
         if not init:
             raise ValueError("init is empty: name at least one parameter to estimate")
-        if not (math.isfinite(sigma) and sigma > 0):
-            raise ValueError(f"sigma must be finite and positive, got {sigma}")
+        if not (math.isfinite(sigma) and (sigma > 0 or (sigma == 0 and discrepancy is not None))):
+            raise ValueError(f"sigma must be finite and positive (0 only with a discrepancy: noise-free data), got {sigma}")
         particles = scene.particles
         self.unknowns = unknowns = _Unknowns(init, particles.n)
         names = unknowns.names
