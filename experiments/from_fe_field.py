@@ -8,8 +8,10 @@ peer (Q2, h_FE = 0.5 mm beam, 0.25 mm plate: ``FE_DATA``), read it on the grid, 
 file* (``calibrate``: the user's code, the same path as for a DIC file):
 
 * VFM defaults (``vfm_defaults.estimate``);
-* adjoint Tikhonov of K, G at delta = 3 h, plain LPS and (unless ``--no-corrected``) with the
-  surface correction, started at the VFM estimate (bounds two decades each way);
+* adjoint Tikhonov of K, G at delta = 3 h, started at the VFM estimate (bounds two decades each
+  way): the plain LPS with its misfit weighted by the approximation-error term below
+  (``tikhonov(..., discrepancy=term, sigma=noise sd)``: the default for measured data) and
+  (unless ``--no-corrected``) the surface-corrected LPS with the plain misfit;
 * Laplace (``bp.fit(..., "laplace")``) on a reduced scene (``bp.ReducedScene`` from 16 prior
   draws, delta held at 3 h by ``bp.Held``, priors LogNormal(log Tikhonov estimate, 0.5)) with the
   approximation-error term of the plain LPS against the FE peer (``fe_error_term``: 16 FE
@@ -165,10 +167,10 @@ def calibrate(path, geometry: str, sigma: float, term=None, seed: int = 0, metho
     out, start, delta = {"vfm": vfm}, {k: vfm[k] for k in ("K", "G")}, 3 * p.h
     if methods == ("vfm",):
         return {"vfm": {**vfm, "wall_time_s": clock[1] - clock[0]}}
-    scale = sigma or 0.01 * top
-    for name, surface in (("tikhonov", False), ("tikhonov_corrected", True))[:2 if "tikhonov_corrected" in methods else 1]:
-        tik = tikhonov(scene_of(field, geometry, delta, surface), y, start, fixed={"delta": delta}, mask=field.mask,
-                       sigma=scale, bounds={k: (v / 100, v * 100) for k, v in start.items()})
+    variants = {"tikhonov": dict(discrepancy=term, sigma=sigma), "tikhonov_corrected": dict(sigma=sigma or 0.01 * top)}
+    for name in (m for m in variants if m in methods):
+        tik = tikhonov(scene_of(field, geometry, delta, name == "tikhonov_corrected"), y, start, fixed={"delta": delta},
+                       mask=field.mask, bounds={k: (v / 100, v * 100) for k, v in start.items()}, **variants[name])
         out[name] = {**tik.params, "converged": tik.converged, "reason": tik.reason}
         clock.append(time.perf_counter())
     out["laplace"] = bayes(field, geometry, sigma, {k: out["tikhonov"][k] for k in ("K", "G")}, term, seed)
