@@ -162,7 +162,8 @@ class Objective:
         return dict(self.fixed, **self.unknowns.params(zt))
 
     def predict(self, params: dict) -> torch.Tensor:
-        return self.scene.observe(self.scene.solve(params))
+        """H u(params): the scene's ``predict`` (a ``Scene``, a ``bp.ReducedScene`` or ``bp.Held``)."""
+        return self.scene.predict(params)
 
     def residual(self, zt: torch.Tensor) -> torch.Tensor:
         """mask (H u - y) / sigma at log-parameters zt, or with a discrepancy the whitened
