@@ -8,10 +8,14 @@ peer (Q2, h_FE = 0.5 mm beam, 0.25 mm plate: ``FE_DATA``), read it on the grid, 
 file* (``calibrate``: the user's code, the same path as for a DIC file):
 
 * VFM defaults (``vfm_defaults.estimate``);
-* adjoint Tikhonov of K, G at delta = 3 h, plain LPS and (unless ``--no-corrected``) with the
-  surface correction, started at the VFM estimate (bounds two decades each way);
-* Laplace (``bp.fit(..., "laplace")``) on a reduced scene (``bp.ReducedScene`` from 16 prior
-  draws, delta held at 3 h by ``bp.Held``, priors LogNormal(log Tikhonov estimate, 0.5)) with the
+* adjoint Tikhonov of K, G at delta = 3 h, started at the VFM estimate (bounds two decades each
+  way): the plain LPS on a reduced scene (``reduced_scene``: ``bp.ReducedScene`` from 16 draws
+  of LogNormal(log VFM estimate, 0.5), delta held at 3 h by ``bp.Held``) with its misfit weighted
+  by the approximation-error term below (``tikhonov(..., discrepancy=term, sigma=noise sd)``:
+  the default for measured data), and (unless ``--no-corrected``) the surface-corrected LPS,
+  full scene, plain misfit;
+* Laplace (``bp.fit(..., "laplace")``) on the same reduced scene (priors LogNormal(log Tikhonov
+  estimate, 0.5)) with the
   approximation-error term of the plain LPS against the FE peer (``fe_error_term``: 16 FE
   solves at h_FE = ``FE_TERM`` (1 mm beam, 0.5 mm plate: coarser than the data's) over nu in
   [0.15, 0.45], plus the peer's own mesh error, h_FE against 2 h_FE; once per geometry):
@@ -165,28 +169,38 @@ def calibrate(path, geometry: str, sigma: float, term=None, seed: int = 0, metho
     out, start, delta = {"vfm": vfm}, {k: vfm[k] for k in ("K", "G")}, 3 * p.h
     if methods == ("vfm",):
         return {"vfm": {**vfm, "wall_time_s": clock[1] - clock[0]}}
-    scale = sigma or 0.01 * top
-    for name, surface in (("tikhonov", False), ("tikhonov_corrected", True))[:2 if "tikhonov_corrected" in methods else 1]:
-        tik = tikhonov(scene_of(field, geometry, delta, surface), y, start, fixed={"delta": delta}, mask=field.mask,
-                       sigma=scale, bounds={k: (v / 100, v * 100) for k, v in start.items()})
+    reduced = reduced_scene(field, geometry, sigma, start, seed)  # Tikhonov and Laplace share it
+    variants = {"tikhonov": (reduced, dict(discrepancy=term, sigma=sigma)),
+                "tikhonov_corrected": (scene_of(field, geometry, delta, True), dict(sigma=sigma or 0.01 * top))}
+    for name in (m for m in variants if m in methods):
+        scene, options = variants[name]
+        tik = tikhonov(scene, y, start, fixed={"delta": delta}, mask=field.mask,
+                       bounds={k: (v / 100, v * 100) for k, v in start.items()}, **options)
         out[name] = {**tik.params, "converged": tik.converged, "reason": tik.reason}
         clock.append(time.perf_counter())
-    out["laplace"] = bayes(field, geometry, sigma, {k: out["tikhonov"][k] for k in ("K", "G")}, term, seed)
+    out["laplace"] = bayes(field, reduced, {k: out["tikhonov"][k] for k in ("K", "G")}, term, seed)
     out["map"] = out["laplace"].pop("map")
     times = dict(zip(out, np.diff(clock + [time.perf_counter()])))
     times["map"] = times["laplace"]  # the MAP is the Laplace's own search
     return {m: {**r, "wall_time_s": float(times[m])} for m, r in out.items()}
 
 
-def bayes(field, geometry: str, sigma: float, nominal: dict, term, seed: int = 0) -> dict:
-    """Laplace on a reduced scene with the error term ``term``: E, nu means and 90 % intervals, and
-    the MAP (the Tikhonov estimate whose misfit is weighted by the term's covariance)."""
+def reduced_scene(field, geometry: str, sigma: float, nominal: dict, seed: int = 0):
+    """The plain LPS at delta = 3 h (held: ``bp.Held``) on a reduced basis (``bp.ReducedScene``)
+    from 16 draws of the Bayesian model's priors around ``nominal``, its observation error within
+    1 % of the noise sd (noise-free: of 1e-3 x 1 % of max |u|)."""
     delta, top = 3 * field.particles.h, float(np.nanmax(np.abs(field.y)))
-    plain, scale, noise_scale = scene_of(field, geometry, delta), sigma or 0.01 * top, 0.05 * top
-    draws = [{**d, "delta": delta} for d in bp.prior_draws(elastic_plate(bp.Held(plain, delta=delta), nominal, noise_scale)
+    plain, scale = scene_of(field, geometry, delta), sigma or 0.01 * top
+    draws = [{**d, "delta": delta} for d in bp.prior_draws(elastic_plate(bp.Held(plain, delta=delta), nominal, 0.05 * top)
                                                             .priors, 16, seed, names=["K", "G"])]
-    reduced = bp.Held(bp.ReducedScene(plain, draws, 0.01 * max(sigma, 1e-3 * scale),
-                                      delta_range=(delta * (1 - 1e-6), delta)), delta=delta)
+    return bp.Held(bp.ReducedScene(plain, draws, 0.01 * max(sigma, 1e-3 * scale),
+                                   delta_range=(delta * (1 - 1e-6), delta)), delta=delta)
+
+
+def bayes(field, reduced, nominal: dict, term, seed: int = 0) -> dict:
+    """Laplace on the reduced scene with the error term ``term``: E, nu means and 90 % intervals, and
+    the MAP (the Tikhonov estimate whose misfit is weighted by the term's covariance)."""
+    noise_scale = 0.05 * float(np.nanmax(np.abs(field.y)))
     tree = fit(elastic_plate(reduced, nominal, noise_scale, discrepancy=term), field.data(), "laplace",
                num_samples=1000, seed=seed, progress=False, predictive=False)
     mode = json.loads(tree.attrs["map_modes"])[0]["values"]

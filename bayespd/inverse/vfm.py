@@ -57,6 +57,16 @@ def pd_constants(material, K, G):
 
 def moduli_from_constants(material, a_s, a_d):
     """(K, G) from the PD constants; refuses constants that map to no positive K, G."""
+    K, G = moduli_of_constants(material, np.asarray(a_s, dtype=float), np.asarray(a_d, dtype=float))
+    if np.isnan(K):
+        raise ValueError(f"the identified PD constants (a_s={float(a_s):.6g}, a_d={float(a_d):.6g}) "
+                         "map to no positive (K, G): the virtual fields do not constrain the "
+                         "moduli (add fields that strain the body where the data are good)")
+    return float(K), float(G)
+
+
+def moduli_of_constants(material, a_s: np.ndarray, a_d: np.ndarray) -> tuple:
+    """(K, G) arrays from arrays of PD constants, NaN where they map to no positive K, G."""
     c, d = material.c_d, material.dim
     G = a_d / c
     kappa = a_s + a_d / d**2
@@ -65,12 +75,10 @@ def moduli_from_constants(material, a_s, a_d):
     elif material.plane == "strain":
         K = kappa - G / 3
     else:  # plane stress: kappa = 9 K G / (3 K + 4 G)  =>  K = 4 G kappa / (9 G - 3 kappa)
-        K = 4 * G * kappa / (9 * G - 3 * kappa) if 9 * G - 3 * kappa > 0 else -1.0
-    if not (G > 0 and K > 0):
-        raise ValueError(f"the identified PD constants (a_s={float(a_s):.6g}, a_d={float(a_d):.6g}) "
-                         "map to no positive (K, G): the virtual fields do not constrain the "
-                         "moduli (add fields that strain the body where the data are good)")
-    return float(K), float(G)
+        den = 9 * G - 3 * kappa
+        K = np.where(den > 0, 4 * G * kappa / np.where(den > 0, den, 1.0), -1.0)
+    ok = (G > 0) & (K > 0)
+    return np.where(ok, K, np.nan), np.where(ok, G, np.nan)
 
 
 PROBES = [(1.0, 1.0), (3.0, 1.0), (2.0, 3.0)]  # (K, G): two split K into K_s, K_d; one checks

@@ -32,6 +32,7 @@ fields than the two unknowns: with two, Phi = 0 for every candidate and nothing 
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -45,7 +46,16 @@ from bayespd.inverse.vfm_noise import MAX_SE, warn_if_noisy, weighted_identify
 from bayespd.validate import count, positive
 
 MS = (2, 3, 4, 5)
+# (margin, size) / h tried when the default fields are too few: hats 3 h apart keep a margin of 3 h
+# (then 2 h). Measured on the FE plate with a hole at h = 1 mm, nu 0.15-0.45, noise-free: K, G
+# within 0.11 % (3, 3) and 0.18 % (2, 3); fewer fields (margin 4 h, hats 3 h: 9 fields; 3 h, 6 h:
+# 5) gave 1.7-2.3 % (docs/results.md, VFM).
+FALLBACK = ((3, 3), (2, 3))
 RULES = ("linear", "smooth")
+
+
+class FallbackFieldsWarning(UserWarning):
+    """The default local fields were too few on this grid; smaller ones were used."""
 
 
 def load_field(scene):
@@ -190,12 +200,41 @@ def _refuse_exactly_determined(fields):
                          "least three fields (or a smaller size= or margin= for more bumps or hats)")
 
 
+def _default_local_fields(scene, u, observed, sigma, size, margin) -> list:
+    """``local_fields`` at ``margin`` and ``size`` (defaults 4 h and 8 h; 4 h with noise: hats 4 h
+    apart bring the weighting nearer the noise-optimal fields). When neither is given and the
+    defaults leave fewer than three fields (a coarse grid: on the plate with a hole at h = 1 mm
+    every hat meets the hole, the clamp or the load), the first of FALLBACK (margin, size) / h
+    that leaves three, with a :class:`FallbackFieldsWarning`."""
+    h = scene.particles.h
+    unmeasured = ~measured(scene.particles.x, u, observed)[1].all(1)
+    unmeasured = unmeasured if unmeasured.any() else None
+    given = margin is not None or size is not None
+    try:
+        fields = local_fields(scene, margin, size if size is not None or sigma is None else 4 * h, unmeasured)
+    except ValueError:
+        if given:
+            raise
+        fields = []
+    if given or len(fields) > 2:
+        return fields
+    for m, s in FALLBACK:
+        try:
+            fallback = local_fields(scene, m * h, s * h, unmeasured)
+        except ValueError:
+            continue
+        if len(fallback) > 2:
+            warnings.warn(f"the default virtual fields (margin 4 h, hats {4 if sigma else 8} h apart) leave "
+                          f"{len(fields)} field(s) on this grid (h = {h:g}): using margin {m:g} h and hats {s:g} h "
+                          "apart. Pass margin= and size= to choose", FallbackFieldsWarning, stacklevel=4)
+            return fallback
+    return fields
+
+
 def _local_estimate(scene, u, observed, sigma, fields, size, margin, max_se) -> VFMResult:
     """``estimate(work="local")``: one closed form (or noise-weighted closed form) on the local work."""
-    if fields is None:  # noisy data: hats 4 h apart bring the weighting nearer the noise-optimal fields
-        unmeasured = ~measured(scene.particles.x, u, observed)[1].all(1)
-        fields = local_fields(scene, margin, size if size is not None or sigma is None else 4 * scene.particles.h,
-                              unmeasured if unmeasured.any() else None)
+    if fields is None:
+        fields = _default_local_fields(scene, u, observed, sigma, size, margin)
     _refuse_exactly_determined(fields)
     work = LocalWork(scene, fields, {"delta": scene.material.bonds.delta_max})
     if sigma is None:
