@@ -151,7 +151,7 @@ def bond_ends(terms) -> tuple[np.ndarray, np.ndarray]:
 def cell_aggregates(positions: np.ndarray, i: np.ndarray, j: np.ndarray,
                     dof_particle: np.ndarray) -> sp.csr_matrix:
     """The finest level's aggregates, (dofs, aggregates) with one 1 per row: the particles
-    of one cubic cell of side s h, split into the parts the bonds (i, j) inside the cell
+    of one square (cubic) cell of side s h, split into the parts the bonds (i, j) inside it
     connect (a crack or a hole through a cell gives two aggregates); each dof goes with its
     particle (``dof_particle``). h and r are the shortest and longest bond. One Jacobi step
     spreads a prolongator column r beyond its cell and K_b couples within r, so two cells

@@ -115,6 +115,39 @@ class LPS(Material):
         self._kept_family = (key, family) if key is not None else (None, None)
         return family
 
+    def _weights(self, params):
+        """(w, m) of ``family`` without the dilatation vectors (the kept ones when kept)."""
+        key = _constant_key(params, ("delta", *self.influence.param_names))
+        if key is not None and self._kept_family[0] == key:
+            return self._kept_family[1][:2]
+        w = self.bond_weight(params)
+        return w, self.weighted_volume(w)
+
+    def _bond_stiffness(self, G, w, m, factor):
+        """k_b = factor c_d w V_i V_j (G_i / m_i + G_j / m_j) (module docstring)."""
+        V, i, j = self.volume, self.i, self.j
+        a = G / m  # per particle, then gathered: (G / m)[i] = G[i] / m[i] to the bit
+        return factor * self.c_d * w * V.index_select(0, i) * V.index_select(0, j) * (a.index_select(0, i) + a.index_select(0, j))
+
+    def form(self, params, v, u):
+        """v^T K(params) u (``Material.form``) with the dilatations taken from the bond
+        extensions, theta_i = (d / m_i) sum_j w |xi| e_ij V_j (Turner 2015 eq 10): O(bonds),
+        neither the dilatation operator's 2 (nb + n) d entries nor its data g (the adjoint's
+        form gradient builds no dilatation vectors)."""
+        moduli = self.moduli(params)
+        K, G = moduli["K"], moduli["G"]
+        d = self.dim
+        w, m = self._weights(params)
+        V, i, j = self.volume, self.i, self.j
+        k_b = self._bond_stiffness(G, w, m, self.bond_correction(moduli, params))
+        s = V * (self.kappa(K, G) - self.c_d * G / d**2)
+        wL = d * w * self.length
+        at_i, at_j = wL * V.index_select(0, j), wL * V.index_select(0, i)
+        e_v, e_u = self.extension(v), self.extension(u)
+        theta_v = self._family_sum(at_i * e_v, at_j * e_v) / m
+        theta_u = self._family_sum(at_i * e_u, at_j * e_u) / m
+        return (k_b * e_v * e_u).sum() + (s * theta_v * theta_u).sum()
+
     def term_coefficients(self, moduli):
         """(G, kappa - c_d G / d^2): the factors of the bond and the dilatation term."""
         K, G = moduli["K"], moduli["G"]
@@ -152,10 +185,8 @@ class LPS(Material):
             w = w * intact
             m = torch.maximum(self._family_volume(w), M_FLOOR * m)
             g = self._dilatation_vectors(w, m)
-        V, i, j = self.volume, self.i, self.j
-        s = V * (self.kappa(K, G) - c * G / d**2)
-        a = G / m  # per particle, then gathered: (G / m)[i] = G[i] / m[i] to the bit
-        k_b = factor * c * w * V.index_select(0, i) * V.index_select(0, j) * (a.index_select(0, i) + a.index_select(0, j))
+        s = self.volume * (self.kappa(K, G) - c * G / d**2)
+        k_b = self._bond_stiffness(G, w, m, factor)
         return [(self.extension_gram, self.extension_data, k_b), (self._dilatation, g.reshape(-1), s)]
 
     def nonlinear(self, kinematics, params, dtype=torch.float64):
