@@ -187,14 +187,20 @@ def calibrate(path, geometry: str, sigma: float, term=None, seed: int = 0, metho
 
 def reduced_scene(field, geometry: str, sigma: float, nominal: dict, seed: int = 0):
     """The plain LPS at delta = 3 h (held: ``bp.Held``) on a reduced basis (``bp.ReducedScene``)
-    from 16 draws of the Bayesian model's priors around ``nominal``, its observation error within
-    1 % of the noise sd (noise-free: of 1e-3 x 1 % of max |u|)."""
+    from 16 draws of the Bayesian model's priors around ``nominal`` (32 when 16 miss the
+    tolerance), its observation error within 1 % of the noise sd (noise-free: of 1e-3 x 1 % of
+    max |u|, i.e. 1e-7 max |u|)."""
     delta, top = 3 * field.particles.h, float(np.nanmax(np.abs(field.y)))
     plain, scale = scene_of(field, geometry, delta), sigma or 0.01 * top
-    draws = [{**d, "delta": delta} for d in bp.prior_draws(elastic_plate(bp.Held(plain, delta=delta), nominal, 0.05 * top)
-                                                            .priors, 16, seed, names=["K", "G"])]
-    return bp.Held(bp.ReducedScene(plain, draws, 0.01 * max(sigma, 1e-3 * scale),
-                                   delta_range=(delta * (1 - 1e-6), delta)), delta=delta)
+    priors = elastic_plate(bp.Held(plain, delta=delta), nominal, 0.05 * top).priors
+    for count in (16, 32):
+        draws = [{**d, "delta": delta} for d in bp.prior_draws(priors, count, seed, names=["K", "G"])]
+        try:
+            return bp.Held(bp.ReducedScene(plain, draws, 0.01 * max(sigma, 1e-3 * scale),
+                                           delta_range=(delta * (1 - 1e-6), delta)), delta=delta)
+        except ValueError:  # the basis from count - validation snapshots misses the tolerance
+            if count == 32:
+                raise
 
 
 def bayes(field, reduced, nominal: dict, term, seed: int = 0) -> dict:

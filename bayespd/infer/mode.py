@@ -31,7 +31,9 @@ MODE_GAP = 3.0  # nats: a second mode closer than this to the best holds >= 5 % 
 BARRIER = 1.0  # nats above the higher of two search ends that make them separate modes
 
 
-REFUSED = (NotPositiveDefiniteError, ParameterRangeError)  # parameters the model refuses
+# parameters the model refuses; torch.linalg.LinAlgError: a likelihood covariance that is not
+# positive definite there (a trial step to extreme moduli: the error term's scale under- or overflows)
+REFUSED = (NotPositiveDefiniteError, ParameterRangeError, torch.linalg.LinAlgError)
 
 
 def _grad(space, z):
