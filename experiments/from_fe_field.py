@@ -5,15 +5,15 @@ seeded) and geometry (the pin-roller beam of ``reference.three_point_bending`` o
 the plate with a hole of ``reference.plate_with_hole`` on a 0.5 mm grid): solve the scikit-fem
 peer (Q2, h_FE = 0.5 mm beam, 0.25 mm plate: ``FE_DATA``), read it on the grid, add noise
 (``--noise`` x max |u|, per entry), write a DIC-like ``.npz`` grid, then *calibrate from the
-file* (``calibrate``: the user's code, the same path as for a DIC file):
+file* by the user's code (``read``, ``scene_of``, ``vfm``, ``fit_tikhonov``, ``calibrate``: 40
+non-blank lines between the markers, the same path as for a DIC file):
 
-* VFM defaults (``vfm_defaults.estimate``);
+* VFM defaults (``vfm_defaults.estimate`` of ``Field.on_particles``);
 * adjoint Tikhonov of K, G at delta = 3 h, started at the VFM estimate (bounds two decades each
-  way): the plain LPS on a reduced scene (``reduced_scene``: ``bp.ReducedScene`` from 16 draws
-  of LogNormal(log VFM estimate, 0.5), delta held at 3 h by ``bp.Held``) with its misfit weighted
-  by the approximation-error term below (``tikhonov(..., discrepancy=term, sigma=noise sd)``:
-  the default for measured data), and (unless ``--no-corrected``) the surface-corrected LPS,
-  full scene, plain misfit;
+  way), the plain LPS on a reduced scene (``bp.ReducedScene.from_sampler``: 16 draws of
+  LogNormal(log VFM estimate, 0.5), 32 where 16 miss the tolerance; delta held at 3 h by
+  ``bp.Held``) with its misfit weighted by the approximation-error term below
+  (``tikhonov(..., discrepancy=term, sigma=noise sd)``: the default for measured data);
 * Laplace (``bp.fit(..., "laplace")``) on the same reduced scene (priors LogNormal(log Tikhonov
   estimate, 0.5)) with the
   approximation-error term of the plain LPS against the FE peer (``fe_error_term``: 16 FE
@@ -21,6 +21,11 @@ file* (``calibrate``: the user's code, the same path as for a DIC file):
   [0.15, 0.45], plus the peer's own mesh error, h_FE against 2 h_FE; once per geometry):
   posterior mean and 90 % intervals of E and nu, and its MAP (``map``: the Tikhonov estimate
   whose misfit is weighted by the noise and the term's covariance, with the weak priors).
+
+The experiment's own code wraps it (``run_case``): each step's wall time, the reduced model's
+rank and error estimate, and the comparisons: (unless ``--no-corrected``) Tikhonov on the
+surface-corrected LPS, full scene, plain misfit; ``--vfm-only --vfm pd`` the VFM by the PD
+virtual work of before issue 30 (``vfm_pd``).
 
 Writes runs/from_fe_field[_beam|_plate|_quick]/ (metrics.json with per-target pass/fail, rewritten
 after every case; error_vs_time.png). A VFM that finds no positive (K, G) counts as failed.
