@@ -48,7 +48,7 @@ import common  # noqa: F401
 from common import run_dir, write_metrics
 
 import bayespd as bp
-from bayespd.infer import fit, modes
+from bayespd.infer import fit, modes, young_intervals
 from bayespd.inverse import tikhonov
 from bayespd.inverse.vfm_defaults import estimate, load_field
 from bayespd.inverse.virtual_fields import interior_bumps
@@ -95,15 +95,6 @@ def fe_error_term(fe_at, scene, nus, inside, young: float = 4000.0, fe_coarse=No
                                        features=bp.ElasticFeatures(with_delta=False), relative=True,
                                        explained=0.9999, points=scene.observation.points)
     return term if fe_coarse is None else term.with_errors(torch.stack(mesh_errors), spread=True)
-
-
-def young_intervals(tree, level: float = 0.9) -> dict:
-    """Mean and central ``level`` interval of E and nu over the posterior draws of K, G."""
-    post = tree["posterior"]
-    E, nu = bp.young_from_moduli(post["K"].values.reshape(-1), post["G"].values.reshape(-1))
-    q = [(1 - level) / 2, (1 + level) / 2]
-    return {k: {"mean": float(np.mean(v)), "sd": float(np.std(v)), "interval_90": np.quantile(v, q).tolist()}
-            for k, v in (("E", np.asarray(E)), ("nu", np.asarray(nu)))}
 
 
 def fe_at(geometry: str, E: float, nu: float, points, h_fe: float | None = None) -> np.ndarray:
