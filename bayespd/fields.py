@@ -64,6 +64,20 @@ class Field:
         """The entries to fit: valid and away from the edges."""
         return self.valid & self.edge
 
+    def on_particles(self) -> np.ndarray:
+        """The measured displacements per particle (particles.n, dim), NaN where not measured: the
+        VFM's input (``vfm_defaults.estimate(scene, u)``). Needs each point to observe one particle,
+        as the particles at the nodes (``particles=None``) do."""
+        index = self.observation.index.numpy()
+        if index.shape[1] != 1:
+            raise ValueError("the measured points interpolate the particles (particles= was given), so no particle "
+                             "has a measured value of its own: read the field with particles=None (a particle at "
+                             "every measured point)")
+        u = np.full((self.particles.n, self.particles.dim), np.nan)
+        rows = self.valid.any(axis=1)
+        u[index[rows, 0]] = self.y[rows]
+        return u
+
     def data(self) -> dict:
         """``{"y", "mask"}`` for a Pyro model (``bp.model_data(y, mask)``)."""
         return model_data(self.y, self.mask)

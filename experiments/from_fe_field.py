@@ -5,15 +5,15 @@ seeded) and geometry (the pin-roller beam of ``reference.three_point_bending`` o
 the plate with a hole of ``reference.plate_with_hole`` on a 0.5 mm grid): solve the scikit-fem
 peer (Q2, h_FE = 0.5 mm beam, 0.25 mm plate: ``FE_DATA``), read it on the grid, add noise
 (``--noise`` x max |u|, per entry), write a DIC-like ``.npz`` grid, then *calibrate from the
-file* (``calibrate``: the user's code, the same path as for a DIC file):
+file* by the user's code (``read``, ``scene_of``, ``vfm``, ``fit_tikhonov``, ``calibrate``: 40
+non-blank lines between the markers, the same path as for a DIC file):
 
-* VFM defaults (``vfm_defaults.estimate``);
+* VFM defaults (``vfm_defaults.estimate`` of ``Field.on_particles``);
 * adjoint Tikhonov of K, G at delta = 3 h, started at the VFM estimate (bounds two decades each
-  way): the plain LPS on a reduced scene (``reduced_scene``: ``bp.ReducedScene`` from 16 draws
-  of LogNormal(log VFM estimate, 0.5), delta held at 3 h by ``bp.Held``) with its misfit weighted
-  by the approximation-error term below (``tikhonov(..., discrepancy=term, sigma=noise sd)``:
-  the default for measured data), and (unless ``--no-corrected``) the surface-corrected LPS,
-  full scene, plain misfit;
+  way), the plain LPS on a reduced scene (``bp.ReducedScene.from_sampler``: 16 draws of
+  LogNormal(log VFM estimate, 0.5), 32 where 16 miss the tolerance; delta held at 3 h by
+  ``bp.Held``) with its misfit weighted by the approximation-error term below
+  (``tikhonov(..., discrepancy=term, sigma=noise sd)``: the default for measured data);
 * Laplace (``bp.fit(..., "laplace")``) on the same reduced scene (priors LogNormal(log Tikhonov
   estimate, 0.5)) with the
   approximation-error term of the plain LPS against the FE peer (``fe_error_term``: 16 FE
@@ -21,6 +21,11 @@ file* (``calibrate``: the user's code, the same path as for a DIC file):
   [0.15, 0.45], plus the peer's own mesh error, h_FE against 2 h_FE; once per geometry):
   posterior mean and 90 % intervals of E and nu, and its MAP (``map``: the Tikhonov estimate
   whose misfit is weighted by the noise and the term's covariance, with the weak priors).
+
+The experiment's own code wraps it (``run_case``): each step's wall time, the reduced model's
+rank and error estimate, and the comparisons: (unless ``--no-corrected``) Tikhonov on the
+surface-corrected LPS, full scene, plain misfit; ``--vfm-only --vfm pd`` the VFM by the PD
+virtual work of before issue 30 (``vfm_pd``).
 
 Writes runs/from_fe_field[_beam|_plate|_quick]/ (metrics.json with per-target pass/fail, rewritten
 after every case; error_vs_time.png). A VFM that finds no positive (K, G) counts as failed.
@@ -31,9 +36,9 @@ after every case; error_vs_time.png). A VFM that finds no positive (K, G) counts
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 import time
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 
 import numpy as np
@@ -43,7 +48,7 @@ import common  # noqa: F401
 from common import run_dir, write_metrics
 
 import bayespd as bp
-from bayespd.infer import fit
+from bayespd.infer import fit, modes, young_intervals
 from bayespd.inverse import tikhonov
 from bayespd.inverse.vfm_defaults import estimate, load_field
 from bayespd.inverse.virtual_fields import interior_bumps
@@ -92,15 +97,6 @@ def fe_error_term(fe_at, scene, nus, inside, young: float = 4000.0, fe_coarse=No
     return term if fe_coarse is None else term.with_errors(torch.stack(mesh_errors), spread=True)
 
 
-def young_intervals(tree, level: float = 0.9) -> dict:
-    """Mean and central ``level`` interval of E and nu over the posterior draws of K, G."""
-    post = tree["posterior"]
-    E, nu = bp.young_from_moduli(post["K"].values.reshape(-1), post["G"].values.reshape(-1))
-    q = [(1 - level) / 2, (1 + level) / 2]
-    return {k: {"mean": float(np.mean(v)), "sd": float(np.std(v)), "interval_90": np.quantile(v, q).tolist()}
-            for k, v in (("E", np.asarray(E)), ("nu", np.asarray(nu)))}
-
-
 def fe_at(geometry: str, E: float, nu: float, points, h_fe: float | None = None) -> np.ndarray:
     """The FE peer's displacements (points, 2) on the mesh of size ``h_fe`` (default: the data's);
     under prescribed loads u scales as 1 / E, so one solve per nu serves every E."""
@@ -128,7 +124,7 @@ def in_body(geometry: str, x):
 # ---- the user's code: a DIC-like file in, K, G and E, nu out ----
 def read(path, geometry: str):
     return bp.read_field(path, order="xy", thickness=tpb.THICKNESS if geometry == "beam" else 1.0,
-                         body=None if geometry == "beam" else (lambda x: in_body("plate", x)))
+                         body=lambda x: in_body(geometry, x))
 
 
 def scene_of(field, geometry: str, delta: float, surface: bool = False):
@@ -143,77 +139,77 @@ def scene_of(field, geometry: str, delta: float, surface: bool = False):
                     field.observation)
 
 
-def vfm_estimate(field, geometry: str, u, sigma: float, work: str = "local") -> dict:
-    """The VFM defaults (``work="local"``); ``work="pd"``: the PD virtual work as before issue 30's
-    local work (m chosen by the residual; for the plate, whose default bumps all meet the hole, the
-    clamp or the load, the load field and bumps clear of them by 3.5 mm)."""
-    sc = scene_of(field, geometry, (5 if work == "pd" else 3) * field.particles.h)
-    if work == "local":
-        res = estimate(sc, u, sigma=sigma or None)
-    else:
-        fields = None if geometry == "beam" else [load_field(sc)] + interior_bumps((6.5, 0), (15.5, 20), (1, 4), 3.5) \
-            + interior_bumps((24.5, 0), (37.5, 20), (2, 4), 3.5)
-        res = estimate(sc, u, sigma=sigma or None, fields=fields, work="pd", ms=(2, 3, 4) if geometry == "beam" else (2, 3))
-    return {**res.params, "se": res.extra.get("se")}
-
-
-def calibrate(path, geometry: str, sigma: float, term=None, seed: int = 0, methods=METHODS, vfm_work: str = "local"):
-    field, clock = read(path, geometry), [time.perf_counter()]
-    p, y, top, u = field.particles, field.y, float(np.nanmax(np.abs(field.y))), np.full((field.particles.n, 2), np.nan)
-    u[field.observation.index[:, 0].numpy()[field.valid[:, 0]]] = y[field.valid[:, 0]]
+def vfm(field, scene, sigma: float, **options) -> dict:
+    """K, G (and se) by the VFM defaults; E = 1e4, nu = 0.3 where they find no positive moduli."""
     try:
-        vfm = vfm_estimate(field, geometry, u, sigma, vfm_work)
-    except ValueError as error:  # no positive (K, G) from noisy data: start from E = 1e4, nu = 0.3
-        vfm = dict(zip(("K", "G"), map(float, bp.moduli_from_young(1e4, 0.3))), failed=str(error))
-    clock.append(time.perf_counter())
-    out, start, delta = {"vfm": vfm}, {k: vfm[k] for k in ("K", "G")}, 3 * p.h
-    if methods == ("vfm",):
-        return {"vfm": {**vfm, "wall_time_s": clock[1] - clock[0]}}
-    reduced = reduced_scene(field, geometry, sigma, start, seed)  # Tikhonov and Laplace share it
-    variants = {"tikhonov": (reduced, dict(discrepancy=term, sigma=sigma)),
-                "tikhonov_corrected": (scene_of(field, geometry, delta, True), dict(sigma=sigma or 0.01 * top))}
-    for name in (m for m in variants if m in methods):
-        scene, options = variants[name]
-        tik = tikhonov(scene, y, start, fixed={"delta": delta}, mask=field.mask,
-                       bounds={k: (v / 100, v * 100) for k, v in start.items()}, **options)
-        out[name] = {**tik.params, "converged": tik.converged, "reason": tik.reason}
-        clock.append(time.perf_counter())
-    out["laplace"] = bayes(field, reduced, {k: out["tikhonov"][k] for k in ("K", "G")}, term, seed)
-    out["map"] = out["laplace"].pop("map")
-    times = dict(zip(out, np.diff(clock + [time.perf_counter()])))
-    times["map"] = times["laplace"]  # the MAP is the Laplace's own search
-    return {m: {**r, "wall_time_s": float(times[m])} for m, r in out.items()}
+        res = estimate(scene, field.on_particles(), sigma=sigma or None, **options)
+        return {**res.params, "se": res.extra.get("se")}
+    except ValueError as error:
+        return {**dict(zip(("K", "G"), map(float, bp.moduli_from_young(1e4, 0.3)))), "failed": str(error)}
 
 
-def reduced_scene(field, geometry: str, sigma: float, nominal: dict, seed: int = 0):
-    """The plain LPS at delta = 3 h (held: ``bp.Held``) on a reduced basis (``bp.ReducedScene``)
-    from 16 draws of the Bayesian model's priors around ``nominal`` (32 when 16 miss the
-    tolerance), its observation error within 1 % of the noise sd (noise-free: of 1e-3 x 1 % of
-    max |u|, i.e. 1e-7 max |u|)."""
+def fit_tikhonov(scene, field, start: dict, **options) -> dict:
+    tik = tikhonov(scene, field.y, {k: start[k] for k in "KG"}, fixed={"delta": 3 * field.particles.h},
+                   mask=field.mask, bounds={k: (start[k] / 100, start[k] * 100) for k in "KG"}, **options)
+    return {**tik.params, "converged": tik.converged, "reason": tik.reason}
+
+
+def calibrate(field, geometry: str, sigma: float, term=None, seed: int = 0, timer=nullcontext) -> dict:
+    """VFM, then Tikhonov and Laplace with the error term ``term`` on one reduced scene; ``timer(step)``: a context."""
     delta, top = 3 * field.particles.h, float(np.nanmax(np.abs(field.y)))
-    plain, scale = scene_of(field, geometry, delta), sigma or 0.01 * top
-    priors = elastic_plate(bp.Held(plain, delta=delta), nominal, 0.05 * top).priors
-    for count in (16, 32):
-        draws = [{**d, "delta": delta} for d in bp.prior_draws(priors, count, seed, names=["K", "G"])]
-        try:
-            return bp.Held(bp.ReducedScene(plain, draws, 0.01 * max(sigma, 1e-3 * scale),
-                                           delta_range=(delta * (1 - 1e-6), delta)), delta=delta)
-        except ValueError:  # the basis from count - validation snapshots misses the tolerance
-            if count == 32:
-                raise
-
-
-def bayes(field, reduced, nominal: dict, term, seed: int = 0) -> dict:
-    """Laplace on the reduced scene with the error term ``term``: E, nu means and 90 % intervals, and
-    the MAP (the Tikhonov estimate whose misfit is weighted by the term's covariance)."""
-    noise_scale = 0.05 * float(np.nanmax(np.abs(field.y)))
-    tree = fit(elastic_plate(reduced, nominal, noise_scale, discrepancy=term), field.data(), "laplace",
-               num_samples=1000, seed=seed, progress=False, predictive=False)
-    mode = json.loads(tree.attrs["map_modes"])[0]["values"]
-    return {**young_intervals(tree), "map": {k: float(mode[k]) for k in ("K", "G")},
-            "rank": reduced.scene.rank,
-            "error_estimate_max": float(np.nanmax(tree["sample_stats"]["reduced_error_estimate"].values))}
+    with timer("vfm"):
+        out = {"vfm": vfm(field, plain := scene_of(field, geometry, delta), sigma)}
+    with timer("tikhonov"):
+        priors = elastic_plate(bp.Held(plain, delta=delta), out["vfm"], 0.05 * top).priors
+        draws = lambda n: [{**d, "delta": delta} for d in bp.prior_draws(priors, n, seed, ["K", "G"])]  # noqa: E731
+        reduced = bp.Held(bp.ReducedScene.from_sampler(plain, draws, 0.01 * max(sigma, 1e-5 * top),
+                                                       delta_range=(delta * (1 - 1e-6), delta)), delta=delta)
+        out["tikhonov"] = fit_tikhonov(reduced, field, out["vfm"], discrepancy=term, sigma=sigma)
+    with timer("laplace"):
+        tree = fit(elastic_plate(reduced, out["tikhonov"], 0.05 * top, discrepancy=term), field.data(), "laplace",
+                   num_samples=1000, seed=seed, progress=False, predictive=False)
+    return {**out, "laplace": young_intervals(tree), "map": {k: float(modes(tree).loc[0, k]) for k in "KG"},
+            "tree": tree, "reduced": reduced}
 # ---- end of the user's code ----
+
+
+def run_case(path, geometry: str, sigma: float, term, seed: int, methods=METHODS, vfm_work: str = "local") -> dict:
+    """The user's ``read`` and ``calibrate`` with each step's wall time (the MAP's is the Laplace's: its own
+    search) and the reduced model's rank and its largest error estimate over the posterior draws, or
+    (``methods == ("vfm",)``) its VFM alone (``vfm_work="pd"``: by the PD work, ``vfm_pd``); plus the
+    surface-corrected Tikhonov when in ``methods`` (full scene, plain misfit, from the same VFM estimate)."""
+    field, times = read(path, geometry), {}
+
+    @contextmanager
+    def timer(step):
+        t0 = time.perf_counter()
+        yield
+        times[step] = time.perf_counter() - t0
+
+    if methods == ("vfm",):
+        with timer("vfm"):
+            res = {"vfm": vfm_pd(field, geometry, sigma) if vfm_work == "pd"
+                   else vfm(field, scene_of(field, geometry, 3 * field.particles.h), sigma)}
+    else:
+        res = calibrate(field, geometry, sigma, term, seed, timer)
+        estimates = res.pop("tree")["sample_stats"]["reduced_error_estimate"].values
+        res["laplace"].update(rank=res.pop("reduced").scene.rank, error_estimate_max=float(np.nanmax(estimates)))
+        times["map"] = times["laplace"]
+    if "tikhonov_corrected" in methods:
+        with timer("tikhonov_corrected"):
+            res["tikhonov_corrected"] = fit_tikhonov(scene_of(field, geometry, 3 * field.particles.h, True), field,
+                                                     res["vfm"], sigma=sigma or 0.01 * float(np.nanmax(np.abs(field.y))))
+    return {m: {**r, "wall_time_s": float(times[m])} for m, r in res.items()}
+
+
+def vfm_pd(field, geometry: str, sigma: float) -> dict:
+    """The VFM by the PD virtual work as before issue 30's local work (delta = 5 h, m chosen by the
+    residual; for the plate, whose default bumps all meet the hole, the clamp or the load, the load
+    field and bumps clear of them by 3.5 mm)."""
+    sc = scene_of(field, geometry, 5 * field.particles.h)
+    fields = None if geometry == "beam" else [load_field(sc)] + interior_bumps((6.5, 0), (15.5, 20), (1, 4), 3.5) \
+        + interior_bumps((24.5, 0), (37.5, 20), (2, 4), 3.5)
+    return vfm(field, sc, sigma, fields=fields, work="pd", ms=(2, 3, 4) if geometry == "beam" else (2, 3))
 
 
 def error_term(path, geometry: str):
@@ -253,6 +249,8 @@ def main():
     ap.add_argument("--vfm-only", action="store_true", help="the VFM alone (no Tikhonov, no Bayesian fit, no error term)")
     ap.add_argument("--vfm", choices=["local", "pd"], default="local", help="the VFM's virtual work (pd: before issue 30's fix)")
     args = ap.parse_args()
+    if args.vfm == "pd" and not args.vfm_only:
+        ap.error("--vfm pd compares the VFM alone (the user's calibrate runs the defaults): add --vfm-only")
     methods = ("vfm",) if args.vfm_only else tuple(m for m in METHODS if not (args.no_corrected and m == "tikhonov_corrected"))
     n = 1 if args.quick else args.materials
     rng = np.random.default_rng(args.seed)
@@ -278,8 +276,8 @@ def main():
                               f"relative rms {terms[geometry][0].rms:.3g}", flush=True)
                     K, G = bp.moduli_from_young(E, nu)
                     truth = {"E": E, "nu": nu, "K": float(K), "G": float(G)}
-                    res = calibrate(path, geometry, sigma, terms.get(geometry, (None,))[0], seed=args.seed + i,
-                                    methods=methods, vfm_work=args.vfm)
+                    res = run_case(path, geometry, sigma, terms.get(geometry, (None,))[0], args.seed + i, methods,
+                                   args.vfm)
                     score(res, truth)
                     rows.append({"geometry": geometry, "material": i, "noise": level, "truth": truth,
                                  "fe_data_s": data_s, **res})

@@ -98,6 +98,21 @@ def test_missing_data_body_edges_and_sigma_masks():
     assert torch.isfinite(data["y"]).all() and float(data["y"][7].abs().sum()) == 0.0
 
 
+def test_on_particles_puts_each_measured_value_on_its_particle():
+    """Particles at the nodes, a column cut out by ``body``, a failed subset: every particle
+    holds the affine field at its own position, the failed one NaN; an interpolating
+    observation has no per-particle values and is refused."""
+    u, v = grids("xy")
+    u[1, 2] = np.nan  # the subset at (2, 11)
+    field = bp.from_grid_field(X, Y, u, v, body=lambda x: x[:, 0] != 0.0)
+    on = field.on_particles()
+    failed = np.all(field.particles.x == (2.0, 11.0), axis=1)
+    assert on.shape == (12, 2) and failed.sum() == 1 and np.isnan(on[failed]).all()
+    assert np.array_equal(on[~failed], affine(field.particles.x[~failed]))
+    with pytest.raises(ValueError, match="interpolate the particles.*particles=None"):
+        bp.from_grid_field(X, Y, u, v, particles=bp.grid_2d(6.0, 2.5, 0.5, origin=(-0.5, 9.5))).on_particles()
+
+
 def test_points_off_a_lattice_need_particles(rng):
     points = rng.uniform(0, 5, (20, 2))
     with pytest.raises(ValueError, match="not on a square lattice.*pass particles="):

@@ -16,7 +16,8 @@ import numpy as np
 import xarray as xr
 
 from bayespd.atomic import atomic_path
-from bayespd.validate import readable_file, reading
+from bayespd.materials import young_from_moduli
+from bayespd.validate import in_range, readable_file, reading
 
 SAMPLE_DIMS = ("chain", "draw")
 DATA_GROUPS = ("observed_data", "constant_data")
@@ -110,6 +111,22 @@ def modes(tree: xr.DataTree, mixed: bool = False):
         rows.append({**mode, **values})
     table = pd.DataFrame(rows).rename_axis("mode")
     return None if mixed and ("weight" not in table or len(table) < 2) else table
+
+
+def young_intervals(tree: xr.DataTree, level: float = 0.9) -> dict:
+    """Young's modulus E and Poisson's ratio nu over the posterior draws of K, G (``young_from_moduli``:
+    E = 9 K G / (3 K + G), nu = (3 K - 2 G) / (2 (3 K + G))): per name its ``mean``, ``sd`` and central
+    ``level`` interval (``interval_90`` for 0.9: the 5 % and 95 % quantiles)."""
+    in_range("level", level, 0.0, 1.0, "give the interval's probability, e.g. 0.9", closed=(False, False))
+    post = tree["posterior"]
+    missing = {"K", "G"} - set(post.data_vars)
+    if missing:
+        raise ValueError(f"the posterior has no {sorted(missing)}: E and nu need draws of the moduli K and G")
+    E, nu = young_from_moduli(post["K"].values.reshape(-1), post["G"].values.reshape(-1))
+    q = [(1 - level) / 2, (1 + level) / 2]
+    key = f"interval_{100 * level:g}"
+    return {k: {"mean": float(np.mean(v)), "sd": float(np.std(v)), key: np.quantile(v, q).tolist()}
+            for k, v in (("E", np.asarray(E)), ("nu", np.asarray(nu)))}
 
 
 def _diagnostic_failures(tree, df):

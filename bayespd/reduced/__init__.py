@@ -3,8 +3,8 @@ piecewise-polynomial in delta, with an a-posteriori error estimate (``ReducedSce
 approximation-error term of a model against a finer reference (``Discrepancy``)."""
 from .discrepancy import Discrepancy, estimate_discrepancy
 from .draws import gaussian_draws, posterior_draws, prior_draws
-from .scene import ReducedScene
+from .scene import ReducedScene, ToleranceMissed
 from .trend import ElasticFeatures, LogFeatures
 
-__all__ = ["ReducedScene", "Discrepancy", "estimate_discrepancy", "prior_draws", "posterior_draws", "gaussian_draws",
+__all__ = ["ReducedScene", "ToleranceMissed", "Discrepancy", "estimate_discrepancy", "prior_draws", "posterior_draws", "gaussian_draws",
            "LogFeatures", "ElasticFeatures"]

@@ -41,6 +41,11 @@ def breakpoints(bonds, low: float, high: float) -> np.ndarray:
     return np.concatenate([[low], kinks, [high]])
 
 
+class ToleranceMissed(ValueError):
+    """The reduced model misses its tolerance (the basis' rank or the polynomials in delta):
+    more draws (snapshots) or a larger tolerance may meet it."""
+
+
 class ReducedScene:
     """A Scene's ``predict``/``solve`` from a reduced basis (module docstring).
 
@@ -106,6 +111,21 @@ class ReducedScene:
             "estimator_effectivity": [self.estimator(d) / max(t, 1e-300) for d, t in zip(held, truth)],
             "snapshot_s": snapshot_s, "operators_s": operators_s, "build_s": time.perf_counter() - start}
 
+    @classmethod
+    def from_sampler(cls, scene, sample, tolerance: float, counts: tuple = (16, 32), **options):
+        """Built from ``sample(n)`` (n params dicts, e.g. prior draws) for the first n of ``counts``
+        whose model meets ``tolerance``: a basis from too few snapshots misses it
+        (``ToleranceMissed``), so the draws grow instead of the build failing; the last count's
+        miss is raised. ``options``: the constructor's keywords."""
+        if not counts:
+            raise ValueError("counts is empty: give the numbers of draws to try, e.g. (16, 32)")
+        for count in counts[:-1]:
+            try:
+                return cls(scene, sample(count), tolerance, **options)
+            except ToleranceMissed:
+                pass
+        return cls(scene, sample(counts[-1]), tolerance, **options)
+
     def _observed(self, u_free: np.ndarray) -> np.ndarray:
         """The observations (columns, points * dim) of free-dof fields (n_free, columns)."""
         c = self.scene.constraints
@@ -129,7 +149,7 @@ class ReducedScene:
             errors.append(float(np.abs(self._predict_numpy(held) - observed).max()))
             if errors[-1] <= self.tolerance / 2:
                 return errors
-        raise ValueError(f"the basis from {self._full[0].shape[1]} snapshots reaches a held-out observation "
+        raise ToleranceMissed(f"the basis from {self._full[0].shape[1]} snapshots reaches a held-out observation "
                          f"error of {min(errors):.3g} at best, above half the tolerance, {self.tolerance / 2:.3g}: "
                          "give more draws (snapshots), or a larger tolerance")
 
@@ -190,7 +210,7 @@ class ReducedScene:
             if worst <= self.tolerance / 4:
                 done.append((a, b, exact))
             elif len(todo) + len(done) + 2 > max_pieces:
-                raise ValueError(f"the operators' polynomials in delta reach an observation error of {worst:.3g} "
+                raise ToleranceMissed(f"the operators' polynomials in delta reach an observation error of {worst:.3g} "
                                  f"on [{a:.4g}, {b:.4g}] with {max_pieces} pieces, above tolerance/4 = "
                                  f"{self.tolerance / 4:.3g}: raise max_pieces or the tolerance")
             else:

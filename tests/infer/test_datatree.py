@@ -1,6 +1,7 @@
 """``bayespd.infer.datatree`` on small hand-built trees (no sampling): the layout and dims of
 ``build_tree``, the NetCDF round trip bit for bit, ``summary``'s columns against numpy and
-its diagnostic warnings by the Vehtari et al. (2021) thresholds, and the ``modes`` table.
+its diagnostic warnings by the Vehtari et al. (2021) thresholds, the ``modes`` table and E, nu
+intervals from K, G draws.
 (The same functions on a real NUTS fit are checked in ``tests/infer/test_fit.py``.)"""
 import json
 import warnings
@@ -9,7 +10,8 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from bayespd.infer import load, save, summary, to_inference_data
+import bayespd as bp
+from bayespd.infer import load, save, summary, to_inference_data, young_intervals
 from bayespd.infer.datatree import build_tree, modes
 
 
@@ -131,3 +133,23 @@ def test_load_names_a_truncated_or_foreign_file(tmp_path):
         load(path)
     with pytest.raises(FileNotFoundError, match="no result file .*missing.nc: check the path"):
         load(tmp_path / "missing.nc")
+
+
+def test_young_intervals_of_known_draws():
+    """E uniform on a grid of 1001 values in [1000, 2000] at nu = 0.3: mean 1500, sd that of the
+    grid, linear-interpolated 5 % / 95 % quantiles 1050 / 1950 (25 % / 75 %: 1250 / 1750 for
+    level 0.5), nu exactly 0.3; a posterior without K, G or a level outside (0, 1) is refused."""
+    E = np.linspace(1000.0, 2000.0, 1001)
+    K, G = bp.moduli_from_young(E, 0.3)
+    tree = {"posterior": xr.Dataset({"K": (("chain", "draw"), np.asarray(K)[None]),
+                                     "G": (("chain", "draw"), np.asarray(G)[None])})}
+    out = young_intervals(tree)
+    assert out["E"]["mean"] == pytest.approx(1500.0, rel=1e-12)
+    assert out["E"]["sd"] == pytest.approx(float(np.std(E)), rel=1e-12)
+    assert out["E"]["interval_90"] == pytest.approx([1050.0, 1950.0], rel=1e-12)
+    assert out["nu"]["interval_90"] == pytest.approx([0.3, 0.3], rel=1e-12)
+    assert young_intervals(tree, 0.5)["E"]["interval_50"] == pytest.approx([1250.0, 1750.0], rel=1e-12)
+    with pytest.raises(ValueError, match="no \\['G'\\].*moduli K and G"):
+        young_intervals({"posterior": tree["posterior"][["K"]]})
+    with pytest.raises(ValueError, match="level must lie in \\(0, 1\\)"):
+        young_intervals(tree, 90)

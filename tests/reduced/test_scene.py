@@ -6,7 +6,7 @@ import pytest
 import torch
 
 import bayespd as bp
-from bayespd.reduced import ReducedScene
+from bayespd.reduced import ReducedScene, ToleranceMissed
 
 K0, G0 = 3000.0, 1400.0
 
@@ -137,6 +137,25 @@ def test_refusals_name_the_fix(built):
         ReducedScene(scene, draws(scene, 6, seed=0), tolerance)
     with pytest.raises(ValueError, match="surface_correction=False"):
         ReducedScene(plate(surface_correction=True), draws(scene, 24, seed=0), tolerance)
+
+
+def test_from_sampler_grows_the_draws_until_the_basis_meets_the_tolerance(built):
+    """8 draws (4 snapshots) miss the fixture's tolerance, 32 meet it: ``from_sampler`` asks for
+    8, then 32, and builds the fixture's model; with 8 alone the miss is raised."""
+    scene, rom, tolerance = built
+    asked = []
+
+    def sample(n):
+        asked.append(n)
+        return draws(scene, n, seed=0)
+
+    grown = ReducedScene.from_sampler(scene, sample, tolerance, counts=(8, 32))
+    assert asked == [8, 32] and grown.rank == rom.rank
+    assert grown.report["validation_error_max"] == rom.report["validation_error_max"]
+    with pytest.raises(ToleranceMissed, match="give more draws"):
+        ReducedScene.from_sampler(scene, sample, tolerance, counts=(8,))
+    with pytest.raises(ValueError, match="counts is empty"):
+        ReducedScene.from_sampler(scene, sample, tolerance, counts=())
 
 
 def test_a_fit_reports_the_error_estimate_per_draw(built):
