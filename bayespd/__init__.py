@@ -28,6 +28,7 @@ from bayespd.problem import Scene  # noqa: E402
 from bayespd.held import Held  # noqa: E402
 from bayespd.learn.kernel import lps_params, solvability_penalty  # noqa: E402
 from bayespd.learn.kernel_shape import KernelShape  # noqa: E402
+from bayespd.learn.dispersion import relative_compliance_error, shell_of  # noqa: E402
 from bayespd.linalg.adjoint import solve  # noqa: E402
 from bayespd.linalg.sparse import ConvergenceError, NotPositiveDefiniteError  # noqa: E402
 from bayespd.reduced import (Discrepancy, ElasticFeatures, LogFeatures, ReducedScene,  # noqa: E402
@@ -44,5 +45,5 @@ __all__ = [
     "point_support", "roller", "point_load", "traction", "SymmetryPlane", "write_vtu", "write_pvd",
     "VTKSeries", "Scene", "Held", "NotPositiveDefiniteError", "ConvergenceError", "solve",
     "ReducedScene", "Discrepancy", "estimate_discrepancy", "prior_draws", "posterior_draws", "gaussian_draws", "LogFeatures",
-    "ElasticFeatures", "lps_params", "solvability_penalty", "KernelShape",
+    "ElasticFeatures", "lps_params", "solvability_penalty", "KernelShape", "relative_compliance_error", "shell_of",
 ]

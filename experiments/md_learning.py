@@ -11,8 +11,9 @@ refitted at the chosen horizon, s0 minimising its displacement error over the fi
 record (bayespd.learn.discrepancy); ``--surface``: phase 2 with the free-surface-corrected LPS of
 eq 3.18 (bayespd.learn.free_surface) in place of the exact-kinematics LPS; then part 4's tests: the
 second half, the pulse run, the 3.17 A grid, with the crack-length histories; a grid posterior of
-s0 with 90 % predictive bands. Bayes: the Laplace posterior of models/md_kernel.py and 90 %
-predictive bands on the validation loads. Writes runs/md_learning[_surface]/metrics.json with every
+s0 with 90 % predictive bands. Bayes: the Laplace posterior of models/md_dispersion.py (the
+measured compliance per wave, a structured model error; models/md_kernel.py's nodal iid likelihood
+beside it, ``bayes_nodal``), 90 % predictive bands on the validation loads and the moduli intervals. Writes runs/md_learning[_surface]/metrics.json with every
 error and wall time. ``--quick``: one horizon, few iterations.
 """
 from __future__ import annotations
@@ -30,11 +31,14 @@ from bayespd.learn import md, md_files
 from bayespd.infer import NotPositiveDefiniteHessian, fit
 from bayespd.learn.coarse_grain import coarse_grain
 from bayespd.learn.discrepancy import learn_s0, relative_error
+from bayespd.learn.dispersion import error_field, measured_compliance, shell_of
 from bayespd.learn.kernel import UnsolvableKernel, learn_kernel, lps_params, relative_errors
 from bayespd.learn.kernel_shape import KernelShape
 from bayespd.learn.moduli import long_wave_moduli
 from bayespd.learn.periodic import PeriodicSheet, periodic_bonds, periodic_grid
 from bayespd.materials.lps import LPS
+from bayespd.linalg.sparse import NotPositiveDefiniteError
+from bayespd.models.md_dispersion import md_dispersion
 from bayespd.models.md_kernel import md_kernel
 
 NAME = "md_learning"
@@ -44,6 +48,7 @@ HORIZONS = (1.5, 2.0, 2.5)  # delta / h swept (3 h: 5.8 % validation error, see 
 MODULI_TOLERANCE = 0.05
 H, FINE = 5.0, 3.17  # A: the coarse grids of the fracture records (md_graphene_data.py)
 S0_BOUNDS = (0.01, 1.0)
+SHELLS = (0.5, 1.0, 1.5)  # |k| h edges of the model error's shells (training waves: |k| h 0.31-2.22)
 # the paper's time-averaged relative errors (displacement, damage), sec. 5.2-5.3
 PAPER = {"extrapolation": (0.27, 0.09), "pulse": (0.58, 0.15), "grid_3.17A": (0.19, 0.30)}
 
@@ -164,49 +169,71 @@ def phase_two(kernel, quick, out, surface: bool):
             "tests": tests, "s0_posterior": posterior}
 
 
-def bayes(best, data, quick):
-    """Laplace posterior of models/md_kernel.py at the phase-1 fit; 90 % predictive bands on the
-    validation loads (parameter draws + noise)."""
+def bayes(best, data, md_moduli, quick, structured=True):
+    """Laplace posterior of models/md_dispersion.py (``structured``: one relative compliance error
+    per orbit of the training waves on shells of |k| h plus an offset common to all, from the
+    measured compliance) or of models/md_kernel.py (nodal iid relative noise) at the phase-1 fit;
+    90 % predictive bands on the validation loads (parameter draws + the model's error term), their
+    node coverage and width; whether the 90 % intervals of the 2D moduli hold the MD sheet's."""
     sheet = data["sheet"]
     f, u = data["train"]
     y = sheet.zero_mean(u)
-    scales = y.pow(2).mean((1, 2)).sqrt()
-    model = md_kernel(sheet, f, scales, nominal=best["mu"], positive_kernel=False)
+    n, h = int(round(np.sqrt(sheet.n))), sheet.material.particles.h
     plane = KernelShape(sheet.material.influence)
     init = {"lam_plus_mu": best["lambda"] + best["mu"], "mu": best["mu"], "delta": best["delta_A"],
-            "shape": plane.coordinates(best["D"]), "sigma": best["train_rel_error_mean"]}
+            "shape": plane.coordinates(best["D"])}
+    if structured:
+        modes, C, off = measured_compliance(f, y, n)
+        model = md_dispersion(sheet, modes * 2 * np.pi / sheet.box, off, SHELLS, nominal=best["mu"])
+        init |= {"s": np.full(len(SHELLS) + 1, best["train_rel_error_mean"]), "tau": best["train_rel_error_mean"]}
+        observed, names = {"C": C}, ("s", "tau")
+    else:
+        model = md_kernel(sheet, f, y.pow(2).mean((1, 2)).sqrt(), nominal=best["mu"], positive_kernel=False)
+        init["sigma"] = best["train_rel_error_mean"]
+        observed, names = {"y": y}, ("sigma",)
     t = time.perf_counter()
-    tree = fit(model, {"y": y}, "laplace", num_samples=40 if quick else 200, seed=0, progress=False,
-               predictive=False, init_values={k: torch.as_tensor(v) for k, v in init.items()})
+    tree = fit(model, observed, "laplace", num_samples=40 if quick else 200, seed=0, progress=False,
+               predictive=False, observed=next(iter(observed)),
+               init_values={k: torch.as_tensor(v) for k, v in init.items()})
     wall = time.perf_counter() - t
     post = tree["posterior"]
-    draws = {k: post[k].values.reshape(-1, *post[k].shape[2:])
-             for k in ("lam_plus_mu", "mu", "delta", "shape", "sigma")}
+    draws = {k: post[k].values.reshape(-1, *post[k].shape[2:]) for k in ("lam_plus_mu", "mu", "delta", "shape", *names)}
     draws["D"] = plane.coefficients(torch.as_tensor(draws["shape"])).numpy()
+    draws["lambda"] = draws["lam_plus_mu"] - draws["mu"]
+    draws["lambda_plus_2mu"] = draws["lam_plus_mu"] + draws["mu"]
     fv, uv = data["validation"]
     yv = sheet.zero_mean(uv).numpy()
     sv = np.sqrt((yv**2).mean((1, 2)))
-    rng = np.random.default_rng(0)
+    k_all = sheet.wavevectors
+    shell = shell_of(k_all.numpy(), h, SHELLS)
+    rng, generator = np.random.default_rng(0), torch.Generator().manual_seed(0)
     pred, inadmissible = [], 0
     for k in range(0, len(draws["mu"]), max(1, len(draws["mu"]) // 50)):
-        p = lps_params(draws["lam_plus_mu"][k] - draws["mu"][k], draws["mu"][k], draws["D"][k], draws["delta"][k])
+        p = lps_params(draws["lambda"][k], draws["mu"][k], draws["D"][k], draws["delta"][k])
         try:
             with torch.no_grad():
                 mean = sheet.spectral_solve(p, fv).numpy()
-        except ValueError:  # a Gaussian draw outside the admissible kernels (m <= 0): the prior gives it 0
+                if structured:  # the model error of the dispersion: a relative compliance error per wavevector
+                    error = error_field(sheet.symbol(p, k_all), fv, torch.as_tensor(draws["s"][k])[shell],
+                                        float(draws["tau"][k]), n, generator).numpy()
+                else:
+                    error = draws["sigma"][k] * sv[:, None, None] * rng.standard_normal(mean.shape)
+        except (ValueError, NotPositiveDefiniteError):  # a Gaussian draw outside the admissible kernels
             inadmissible += 1
             continue
-        pred.append(mean + draws["sigma"][k] * sv[:, None, None] * rng.standard_normal(mean.shape))
+        pred.append(mean + error)
     lo, hi = np.quantile(np.array(pred), [0.05, 0.95], axis=0)
     inside = ((yv >= lo) & (yv <= hi)).all(-1)
-    summary = {k: {"mean": float(np.mean(v)), "sd": float(np.std(v)), "q05": float(np.quantile(v, 0.05)),
-                   "q95": float(np.quantile(v, 0.95))} for k, v in draws.items() if k not in ("shape", "D")}
-    lam = draws["lam_plus_mu"] - draws["mu"]
-    summary["lambda"] = {"mean": float(lam.mean()), "sd": float(lam.std()), "q05": float(np.quantile(lam, 0.05)),
-                         "q95": float(np.quantile(lam, 0.95))}
-    return {"method": "laplace (exact Hessian at the MAP)", "wall_time_s": wall, "draws": len(draws["mu"]),
+    summary = {k: {"mean": np.mean(v, 0).tolist(), "sd": np.std(v, 0).tolist(), "q05": np.quantile(v, 0.05, 0).tolist(),
+                   "q95": np.quantile(v, 0.95, 0).tolist()} for k, v in draws.items() if k not in ("shape", "D")}
+    covers = {k: bool(summary[k]["q05"] <= md_moduli[k] <= summary[k]["q95"]) for k in ("lambda_plus_2mu", "mu")}
+    return {"method": "laplace (exact Hessian at the MAP)",
+            "likelihood": ("measured compliance per orbit: relative error per shell of |k| h + common offset"
+                           if structured else "nodal iid relative noise"),
+            "shells_kh": SHELLS if structured else None, "wall_time_s": wall, "draws": len(draws["mu"]),
             "posterior": summary, "validation_band90_node_coverage": float(inside.mean()),
-            "predictive_draws": len(pred), "inadmissible_draws": inadmissible}
+            "validation_band90_width_rel": float(((hi - lo) / sv[:, None, None]).mean()),
+            "moduli_interval90_covers_md": covers, "predictive_draws": len(pred), "inadmissible_draws": inadmissible}
 
 
 def main():
@@ -220,17 +247,24 @@ def main():
     t = time.perf_counter()
     two = phase_two(one["non_negative_at_best"], args.quick, out, args.surface)
     two["wall_time_s_total"] = time.perf_counter() - t
-    try:
-        posterior = bayes(one["best"], data, args.quick)
-    except (UnsolvableKernel, NotPositiveDefiniteHessian) as error:  # the MAP search stepped onto a kernel
-        # with m <= 0, or stopped on a kink in delta where the Hessian is indefinite (docs/results.md)
-        posterior = {"failed": str(error), "validation_band90_node_coverage": None}
-    print(posterior, flush=True)
+    posteriors = {}
+    for name, structured in (("bayes", True), ("bayes_nodal", False)):
+        try:
+            posteriors[name] = bayes(one["best"], data, one["md_moduli_eV_per_A2"], args.quick, structured)
+        except (UnsolvableKernel, NotPositiveDefiniteHessian) as error:  # the MAP search stepped onto a kernel
+            # with m <= 0, or stopped on a kink in delta where the Hessian is indefinite (docs/results.md)
+            posteriors[name] = {"failed": str(error), "validation_band90_node_coverage": None,
+                                "moduli_interval90_covers_md": {}}
+        print(name, posteriors[name], flush=True)
+    posterior = posteriors["bayes"]
     targets = {f"moduli_{k}_within_5pct": {"value": v, "target": MODULI_TOLERANCE, "passed": v <= MODULI_TOLERANCE}
                for k, v in one["moduli_rel_error"].items()}
     cover = posterior["validation_band90_node_coverage"]
     targets["validation_band90_covers_80pct_nodes"] = {"value": cover, "target": 0.8,
                                                        "passed": cover is not None and cover >= 0.8}
+    for k in ("lambda_plus_2mu", "mu"):
+        covered = posterior["moduli_interval90_covers_md"].get(k)
+        targets[f"moduli_{k}_interval90_covers_md"] = {"value": covered, "target": True, "passed": bool(covered)}
     inside = S0_BOUNDS[0] * 1.05 < two["s0"] < S0_BOUNDS[1] / 1.05
     targets["s0_interior_minimum"] = {"value": two["s0"], "target": f"inside {S0_BOUNDS}", "passed": inside}
     for name, post in two["s0_posterior"].items():
@@ -244,7 +278,7 @@ def main():
             targets[f"{test}_{kind}_error_vs_paper"] = {"value": v, "target": paper,
                                                          "passed": v is not None and v <= paper}
     write_metrics(run_name, {
-        "wall_time_s": time.perf_counter() - start, "phase1": one, "phase2": two, "bayes": posterior,
+        "wall_time_s": time.perf_counter() - start, "phase1": one, "phase2": two, **posteriors,
         "targets": targets,
         "settings": {"surface_eq3_18": args.surface, "nodes": NODES, "degree": DEGREE, "alpha": 0.0, "horizons_over_h": HORIZONS,
                      "coarse_graining": "plain cone, R = 2h, periodic", "plane": "strain, thickness 1 (2D moduli)"}})

@@ -36,6 +36,28 @@ from bayespd.models.observations import check_shape
 from bayespd.models.priors import positive
 
 
+def kernel_prior(sheet, nominal: float, positive_kernel: bool = True):
+    """``draw()``: the LPS params (plane strain) of the sites ``lam_plus_mu``, ``mu``, ``delta``,
+    ``d`` (or ``shape``) under the priors above; ``nominal``: the prior median of lambda + mu and mu."""
+    m = math.log(positive("the nominal modulus", nominal))
+    h, delta_max = sheet.material.particles.h, sheet.material.bonds.delta_max
+    P = sheet.material.influence.degree
+    plane = None if positive_kernel else KernelShape(sheet.material.influence)
+
+    def draw() -> dict:
+        kappa = pyro.sample("lam_plus_mu", dist.LogNormal(m, 1.0))
+        mu = pyro.sample("mu", dist.LogNormal(m, 1.0))
+        delta = pyro.sample("delta", ScaledBeta(1.2 * h, delta_max, 2.0, 2.0))
+        if positive_kernel:
+            D = torch.exp(pyro.sample("d", dist.Normal(torch.zeros(P + 1), 1.0).to_event(1)))
+        else:
+            D = plane.coefficients(pyro.sample("shape", dist.MultivariateStudentT(
+                torch.tensor(1.0), torch.zeros(P), plane.uniform_direction_scale * torch.eye(P))))
+        return lps_params(kappa - mu, mu, D, delta)
+
+    return draw
+
+
 def md_kernel(sheet, forces, scales, nominal: float, positive_kernel: bool = True):
     """A Pyro model ``model(y=None)`` for zero-mean displacements y (loads, N, 2) of ``sheet`` under
     nodal ``forces`` (loads, N, 2); ``scales`` (loads,): each load's data RMS; ``nominal``: the
@@ -46,24 +68,13 @@ def md_kernel(sheet, forces, scales, nominal: float, positive_kernel: bool = Tru
     shape = tuple(forces.shape)
     if scales.shape != shape[:1] or not bool(torch.all(scales > 0)):
         raise ValueError(f"scales must hold one positive RMS per load ({shape[0]})")
-    m = math.log(positive("the nominal modulus", nominal))
-    h, delta_max = sheet.material.particles.h, sheet.material.bonds.delta_max
-    P = sheet.material.influence.degree
-    plane = None if positive_kernel else KernelShape(sheet.material.influence)
+    draw = kernel_prior(sheet, nominal, positive_kernel)
 
     def model(y=None):
         if y is not None:
             y = check_shape(y, shape, "y", "the zero-mean nodal displacements of every load")
-        kappa = pyro.sample("lam_plus_mu", dist.LogNormal(m, 1.0))
-        mu = pyro.sample("mu", dist.LogNormal(m, 1.0))
-        delta = pyro.sample("delta", ScaledBeta(1.2 * h, delta_max, 2.0, 2.0))
-        if positive_kernel:
-            D = torch.exp(pyro.sample("d", dist.Normal(torch.zeros(P + 1), 1.0).to_event(1)))
-        else:
-            D = plane.coefficients(pyro.sample("shape", dist.MultivariateStudentT(
-                torch.tensor(1.0), torch.zeros(P), plane.uniform_direction_scale * torch.eye(P))))
+        params = draw()
         sigma = pyro.sample("sigma", dist.HalfNormal(0.1))
-        params = lps_params(kappa - mu, mu, D, delta)
         pyro.factor("solvability", -forces[..., 0].numel() * solvability_penalty(sheet, params))
         u = sheet.spectral_solve(params, forces)
         pyro.sample("y", dist.Normal(u, sigma * scales[:, None, None]).to_event(3), obs=y)

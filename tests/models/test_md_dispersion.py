@@ -1,0 +1,60 @@
+"""models/md_dispersion.py: its likelihood is the density of the measured compliances by the change
+of variables C = L^-T (I + Delta) L^-1 (checked against the Gaussian of C's entries, to rounding);
+the common offset's limit tau -> 0 is the per-orbit law; shells without an orbit are refused."""
+import numpy as np
+import pytest
+import torch
+from torch.distributions import MultivariateNormal
+
+from bayespd.models.md_dispersion import CompliancePerOrbit, md_dispersion
+from tests.learn.test_dispersion import pd_sheet
+
+WAVES = np.array([[1, 0], [1, 1], [2, 1]])
+
+
+def symbols_and_data(seed=0):
+    s, n, p = pd_sheet()
+    S = s.symbol(p, torch.as_tensor(WAVES * 2 * np.pi / s.box)).detach()
+    off = torch.tensor([False, True, True])
+    law = CompliancePerOrbit(S, torch.tensor([0.03, 0.05, 0.02], dtype=S.dtype), off)
+    torch.manual_seed(seed)
+    return s, S, off, law, law.sample()
+
+
+def test_the_likelihood_is_the_density_of_the_compliance():
+    """Per orbit, (C11, C22[, C12]) is Gaussian with mean S^-1's entries and covariance J Sigma J^T
+    (J = dC/dDelta: linear, Sigma = diag(s^2, s^2[, s^2 / 2])): the sum of those log densities
+    equals log_prob to rounding."""
+    _, S, off, law, C = symbols_and_data()
+    total = 0.0
+    for o in range(len(S)):
+        Linv = torch.linalg.inv(torch.linalg.cholesky(S[o]))
+        entries = [(0, 0), (1, 1), (0, 1)][: 3 if off[o] else 2]
+
+        def c_of(d):  # the measured entries for Delta's entries d
+            D = torch.zeros(2, 2, dtype=S.dtype)
+            for (i, j), v in zip(entries, d):
+                D = D + v * (torch.eye(2, dtype=S.dtype)[i][:, None] * torch.eye(2, dtype=S.dtype)[j][None, :])
+                if i != j:
+                    D = D + v * (torch.eye(2, dtype=S.dtype)[j][:, None] * torch.eye(2, dtype=S.dtype)[i][None, :])
+            X = Linv.T @ (torch.eye(2, dtype=S.dtype) + D) @ Linv
+            return torch.stack([X[i, j] for i, j in entries])
+
+        zero = torch.zeros(len(entries), dtype=S.dtype)
+        J = torch.autograd.functional.jacobian(c_of, zero)
+        sd = law.s[o] ** 2 * torch.tensor([1.0, 1.0, 0.5][: len(entries)], dtype=S.dtype)
+        total += MultivariateNormal(c_of(zero), J @ torch.diag(sd) @ J.T).log_prob(
+            torch.stack([C[o][i, j] for i, j in entries]))
+    assert abs(float(law.log_prob(C)) - float(total)) < 1e-9 * abs(float(total))
+
+
+def test_a_vanishing_common_offset_is_the_per_orbit_law():
+    _, S, off, law, C = symbols_and_data()
+    tiny = CompliancePerOrbit(S, law.s, off, torch.tensor(1e-9, dtype=S.dtype))
+    assert abs(float(tiny.log_prob(C)) - float(law.log_prob(C))) < 1e-8 * abs(float(law.log_prob(C)))
+
+
+def test_shells_must_each_hold_an_orbit():
+    s, _, _ = pd_sheet()
+    with pytest.raises(ValueError, match="every shell needs an orbit"):
+        md_dispersion(s, WAVES * 2 * np.pi / s.box, torch.tensor([False, True, True]), (1e-3, 2e-3), nominal=3.0)
