@@ -260,7 +260,7 @@ def main():
         try:
             posteriors[name] = bayes(one["best"], data, one["md_moduli_eV_per_A2"], args.quick, structured)
         except (UnsolvableKernel, NotPositiveDefiniteHessian) as error:  # the MAP search stepped onto a kernel
-            # with m <= 0, or stopped on a kink in delta where the Hessian is indefinite (docs/results.md)
+            # with m <= 0, or found no positive-definite mode: recorded, not raised (docs/results.md)
             posteriors[name] = {"failed": str(error), "validation_band90_node_coverage": None,
                                 "moduli_interval90_covers_md": {}}
         print(name, posteriors[name], flush=True)
