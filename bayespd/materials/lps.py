@@ -106,20 +106,24 @@ class LPS(Material):
         that need no gradient (a calibration over moduli at a fixed horizon; the surface
         correction's probes): ``terms`` and ``energy_parts`` then skip them (~0.25 CPU-s
         at 160k particles in 2D)."""
-        key = _constant_key(params, ("delta", *self.influence.param_names))
-        if key is not None and self._kept_family[0] == key:
-            return self._kept_family[1]
-        w = self.bond_weight(params)
-        m = self.weighted_volume(w)
+        key, kept = self._kept(params)
+        if kept is not None:
+            return kept
+        w, m = self._weights(params)
         family = (w, m, self._dilatation_vectors(w, m))
         self._kept_family = (key, family) if key is not None else (None, None)
         return family
 
+    def _kept(self, params):
+        """(key, the kept family or None): its key is params' horizon and influence parameters."""
+        key = _constant_key(params, ("delta", *self.influence.param_names))
+        return key, (self._kept_family[1] if key is not None and self._kept_family[0] == key else None)
+
     def _weights(self, params):
         """(w, m) of ``family`` without the dilatation vectors (the kept ones when kept)."""
-        key = _constant_key(params, ("delta", *self.influence.param_names))
-        if key is not None and self._kept_family[0] == key:
-            return self._kept_family[1][:2]
+        _, kept = self._kept(params)
+        if kept is not None:
+            return kept[:2]
         w = self.bond_weight(params)
         return w, self.weighted_volume(w)
 
@@ -135,13 +139,12 @@ class LPS(Material):
         neither the dilatation operator's 2 (nb + n) d entries nor its data g (the adjoint's
         form gradient builds no dilatation vectors)."""
         moduli = self.moduli(params)
-        K, G = moduli["K"], moduli["G"]
-        d = self.dim
+        G, dilatation = self.term_coefficients(moduli)
         w, m = self._weights(params)
         V, i, j = self.volume, self.i, self.j
         k_b = self._bond_stiffness(G, w, m, self.bond_correction(moduli, params))
-        s = V * (self.kappa(K, G) - self.c_d * G / d**2)
-        wL = d * w * self.length
+        s = V * dilatation
+        wL = self.dim * w * self.length
         at_i, at_j = wL * V.index_select(0, j), wL * V.index_select(0, i)
         e_v, e_u = self.extension(v), self.extension(u)
         theta_v = self._family_sum(at_i * e_v, at_j * e_v) / m
@@ -178,14 +181,13 @@ class LPS(Material):
     def stiffness_terms(self, moduli, params, factor=1.0, intact=None):
         """K = B^T diag(k_b) B + D^T diag(s) D (module docstring); with ``intact`` the bond
         weights are mu w and m is floored at M_FLOOR times its undamaged value."""
-        K, G = moduli["K"], moduli["G"]
-        d, c = self.dim, self.c_d
+        G, dilatation = self.term_coefficients(moduli)
         w, m, g = self.family(params)
         if intact is not None:
             w = w * intact
             m = torch.maximum(self._family_volume(w), M_FLOOR * m)
             g = self._dilatation_vectors(w, m)
-        s = self.volume * (self.kappa(K, G) - c * G / d**2)
+        s = self.volume * dilatation
         k_b = self._bond_stiffness(G, w, m, factor)
         return [(self.extension_gram, self.extension_data, k_b), (self._dilatation, g.reshape(-1), s)]
 
