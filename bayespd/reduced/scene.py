@@ -150,8 +150,8 @@ class ReducedScene:
             if errors[-1] <= self.tolerance / 2:
                 return errors
         raise ToleranceMissed(f"the basis from {self._full[0].shape[1]} snapshots reaches a held-out observation "
-                         f"error of {min(errors):.3g} at best, above half the tolerance, {self.tolerance / 2:.3g}: "
-                         "give more draws (snapshots), or a larger tolerance")
+                              f"error of {min(errors):.3g} at best, above half the tolerance, {self.tolerance / 2:.3g}: "
+                              "give more draws (snapshots), or a larger tolerance")
 
     def _shape(self, params: dict) -> np.ndarray:
         """The ratios Theta_t / Theta_0: what the solution's shape depends on besides delta
@@ -211,8 +211,8 @@ class ReducedScene:
                 done.append((a, b, exact))
             elif len(todo) + len(done) + 2 > max_pieces:
                 raise ToleranceMissed(f"the operators' polynomials in delta reach an observation error of {worst:.3g} "
-                                 f"on [{a:.4g}, {b:.4g}] with {max_pieces} pieces, above tolerance/4 = "
-                                 f"{self.tolerance / 4:.3g}: raise max_pieces or the tolerance")
+                                      f"on [{a:.4g}, {b:.4g}] with {max_pieces} pieces, above tolerance/4 = "
+                                      f"{self.tolerance / 4:.3g}: raise max_pieces or the tolerance")
             else:
                 todo += [(a, 0.5 * (a + b)), (0.5 * (a + b), b)]
         done.sort(key=lambda piece: piece[0])
