@@ -139,11 +139,10 @@ class LPS(Material):
         neither the dilatation operator's 2 (nb + n) d entries nor its data g (the adjoint's
         form gradient builds no dilatation vectors)."""
         moduli = self.moduli(params)
-        G, dilatation = self.term_coefficients(moduli)
         w, m = self._weights(params)
         V, i, j = self.volume, self.i, self.j
-        k_b = self._bond_stiffness(G, w, m, self.bond_correction(moduli, params))
-        s = V * dilatation
+        k_b = self._bond_stiffness(moduli["G"], w, m, self.bond_correction(moduli, params))
+        s = V * self.term_coefficients(moduli)[1]  # k_b first: the gradient sums into G in the same order, bit for bit
         wL = self.dim * w * self.length
         at_i, at_j = wL * V.index_select(0, j), wL * V.index_select(0, i)
         e_v, e_u = self.extension(v), self.extension(u)
@@ -181,14 +180,13 @@ class LPS(Material):
     def stiffness_terms(self, moduli, params, factor=1.0, intact=None):
         """K = B^T diag(k_b) B + D^T diag(s) D (module docstring); with ``intact`` the bond
         weights are mu w and m is floored at M_FLOOR times its undamaged value."""
-        G, dilatation = self.term_coefficients(moduli)
         w, m, g = self.family(params)
         if intact is not None:
             w = w * intact
             m = torch.maximum(self._family_volume(w), M_FLOOR * m)
             g = self._dilatation_vectors(w, m)
-        s = self.volume * dilatation
-        k_b = self._bond_stiffness(G, w, m, factor)
+        s = self.volume * self.term_coefficients(moduli)[1]
+        k_b = self._bond_stiffness(moduli["G"], w, m, factor)
         return [(self.extension_gram, self.extension_data, k_b), (self._dilatation, g.reshape(-1), s)]
 
     def nonlinear(self, kinematics, params, dtype=torch.float64):
