@@ -47,7 +47,8 @@ def test_map_at_fixed_hyper_parameters_is_the_tikhonov_solution(square):
     map_log_mu = tree["sample_stats"]["mode_unconstrained"].values
     kw = tikhonov_settings(model, hyper["G_mean"], hyper["length"], hyper["amplitude"])
     res = tikhonov(coarse, y, {"G": np.full(coarse.particles.n, MU0)}, fixed=fixed, sigma=sd, gtol=1e-12, ftol=1e-13, **kw)
-    assert res.converged
+    assert res.converged or "round-off floor" in res.reason, res.reason  # gtol 1e-12 sits at J's round-off:
+    # the stop may be there (a 1-ulp change in the gradient moves it); the agreement below is the test
     np.testing.assert_allclose(np.log(res.params["G"]), map_log_mu, rtol=0, atol=1e-7)
     assert np.abs(map_log_mu - np.log(truth["G"].numpy())).max() > 1e-3  # a non-trivial field
 
