@@ -14,7 +14,9 @@ import torch
 
 from bayespd.linalg.amg import amg_preconditioner, pair_operator, pair_rows
 from bayespd.linalg.assembly import Gram, numeric_values, to_numpy, union_pattern
+from bayespd.linalg import row_runs
 from bayespd.linalg.config import current_settings
+from bayespd.linalg.row_runs import RowRuns
 from bayespd.linalg.sparse import (NotPositiveDefiniteError, Pattern, PCGFactor, blas_threads, cholmod,
                             default_backend)
 
@@ -158,7 +160,8 @@ class Assembly:
     def _split_operator(self, terms, pair: sp.csr_matrix):
         """x -> K_b x + C_r^T (W_r (C_r x)): K_b = ``pair`` (the ``amg.pair_rows`` of every
         term), C_r the remaining rows (multi-particle rows such as LPS dilatations, negative
-        weights) on the free columns, its transpose stored as CSR (a gather, not a scatter)."""
+        weights) on the free columns, its transpose stored as CSR (a gather, not a scatter);
+        each product in runs of rows on two threads where numba is installed (``row_runs``)."""
         rest = []
         for g, d, w in terms:
             w = np.asarray(to_numpy(w), dtype=np.float64)
@@ -172,10 +175,13 @@ class Assembly:
         CT = C.T.tocsr() if rest else None
         W = np.concatenate([w for _, w in rest]) if rest else None
 
+        times = (lambda M: RowRuns(M).product) if row_runs.usable() else (lambda M: M.__matmul__)
+        K_b, C_times, CT_times = times(pair), *((times(C), times(CT)) if rest else (None, None))
+
         def matvec(x):
-            y = pair @ x
+            y = K_b(x)
             if C is not None:
-                y += CT @ (W.reshape(-1, *([1] * (x.ndim - 1))) * (C @ x))
+                y += CT_times(W.reshape(-1, *([1] * (x.ndim - 1))) * C_times(x))
             return y
 
         return matvec

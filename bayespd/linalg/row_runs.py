@@ -1,0 +1,158 @@
+"""A CSR matrix cut into runs of rows and applied on two threads (numba, where installed): its
+product, and the hybrid Gauss-Seidel sweeps that smooth the V-cycle of ``bayespd.linalg.amg``.
+
+scipy's product runs on one thread, and pyamg's Gauss-Seidel sweep holds the GIL throughout,
+so a PCG iteration used one core. Here the rows are cut into at most ``RUNS`` runs, each
+computed by a compiled loop that releases the GIL into an output of its own from read-only
+inputs, so the runs can go to any thread in any order (``bond_loops.claimed``) and the result
+is the same bits on one thread or two.
+
+The smoother is Gauss-Seidel inside each run and Jacobi between runs (the "hybrid" smoother of
+parallel AMG codes; Baker, Falgout, Kolev & Yang 2011, section 4): the pre-smoother is
+x = M^-1 b from zero with M = blockdiag(D + L), the post-smoother x + M^-T (b - A x), so the
+cycle stays symmetric (x . C y = y . C x) and preconditions CG. The run count is fixed by the
+rows, not by the threads: one thread computes what two would.
+
+The loops sum a row in whatever order LLVM vectorises it (``fastmath`` reassociation and fused
+multiply-adds) over unsigned indices (numba checks a signed index for wrap-around): a CSR
+product 1.6x and 2x faster than without them, faster than scipy's (benchmarks/README.md, issue
+31, sixth pass); the last bits depend on the CPU's vector width, not on the run. The sweeps
+need sorted indices (a copy is sorted where they are not). A row whose diagonal is 0 (a dof no
+bond reaches) keeps its value, as in pyamg's sweep.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from bayespd import bond_loops
+from bayespd.bond_loops import numba
+
+RUNS = 8  # runs of rows (fixed: the results do not depend on the thread count)
+MIN_ROWS = 4096  # rows per run below which the matrix is one run
+_FAST = {"reassoc", "contract"}
+NONE = np.iinfo(np.uint64).max  # a row without a diagonal entry
+
+
+def usable() -> bool:
+    """True when the compiled loops can run (numba installed, ``bond_loops.ENABLED``)."""
+    return bond_loops.usable()
+
+
+class RowRuns:
+    """A CSR matrix A (n x m) in runs of rows: ``product``, and for a square A with sorted
+    indices the sweeps ``pre``, ``residual``, ``post``."""
+
+    def __init__(self, A):
+        self.A = A
+        # unsigned views of the index arrays (the module docstring)
+        unsigned = np.uint32 if A.indices.dtype == np.int32 else np.uint64
+        self.indptr, self.indices = A.indptr.view(unsigned), A.indices.view(unsigned)
+        n = A.shape[0]
+        count = max(1, min(RUNS, n // MIN_ROWS))
+        cuts = [n * t // count for t in range(count + 1)]
+        self.runs = list(zip(cuts[:-1], cuts[1:]))
+
+    @classmethod
+    def smoother(cls, A) -> RowRuns:
+        """The runs of A with sorted indices (A itself when sorted) and its diagonal located."""
+        runs = cls(A if A.has_sorted_indices else A.sorted_indices())
+        runs.diagonal = np.empty(A.shape[0], dtype=np.uint64)  # each row's diagonal entry (NONE: none)
+        _diagonal_positions(runs.indptr, runs.indices, runs.diagonal)
+        return runs
+
+    def _each_run(self, kernel, *vectors) -> np.ndarray:
+        """kernel(indptr, indices, data, *vectors, lo, hi, out) over the runs, joined."""
+        def run(t):
+            lo, hi = self.runs[t]
+            out = np.empty(hi - lo)
+            kernel(self.indptr, self.indices, self.A.data, *vectors, np.uint64(lo), np.uint64(hi), out)
+            return out
+
+        threads = torch.get_num_threads() if len(self.runs) > 1 else 1
+        return np.concatenate(bond_loops.claimed(run, len(self.runs), threads))
+
+    def product(self, x: np.ndarray) -> np.ndarray:
+        """A x for x of shape (m,) or (m, k) (k columns one after another)."""
+        if x.ndim == 2:
+            return np.stack([self.product(np.ascontiguousarray(c)) for c in x.T], axis=1)
+        return self._each_run(_product, x)
+
+    def pre(self, b: np.ndarray) -> np.ndarray:
+        """M^-1 b: a forward sweep from x = 0."""
+        return self._each_run(_forward_from_zero, self.diagonal, b)
+
+    def residual(self, x: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """b - A x."""
+        return self._each_run(_residual, x, b)
+
+    def post(self, x: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """x + M^-T (b - A x): a backward sweep from x."""
+        return self._each_run(_backward, self.diagonal, x, b)
+
+
+if numba is not None:
+    @numba.njit(nogil=True, cache=True)
+    def _diagonal_positions(indptr, indices, out):  # pragma: no cover - compiled
+        for i in range(len(out)):
+            out[i] = NONE
+            for k in range(indptr[i], indptr[i + 1]):
+                if indices[k] >= i:
+                    if indices[k] == i:
+                        out[i] = k
+                    break
+
+    @numba.njit(nogil=True, cache=True, fastmath=_FAST)
+    def _forward_from_zero(indptr, indices, data, diagonal, b, lo, hi, out):  # pragma: no cover - compiled
+        for r in range(hi - lo):
+            i, d = lo + r, diagonal[lo + r]
+            if d == NONE or data[d] == 0.0:
+                out[r] = 0.0
+                continue
+            acc, first = b[i], indptr[i]
+            while indices[first] < lo:  # columns left of the run: x = 0 there
+                first += 1
+            for k in range(first, d):
+                acc -= data[k] * out[indices[k] - lo]
+            out[r] = acc / data[d]
+
+    @numba.njit(nogil=True, cache=True, fastmath=_FAST)
+    def _backward(indptr, indices, data, diagonal, x, b, lo, hi, out):  # pragma: no cover - compiled
+        for r in range(hi - lo):
+            out[r] = x[lo + r]
+        for s in range(hi - lo):
+            r = hi - lo - 1 - s
+            i, d = lo + r, diagonal[lo + r]
+            if d == NONE or data[d] == 0.0:
+                continue
+            start, end = indptr[i], indptr[i + 1]
+            acc = b[i]
+            if indices[start] >= lo and indices[end - 1] < hi:  # the whole row inside the run
+                for k in range(start, d):
+                    acc -= data[k] * out[indices[k] - lo]
+                for k in range(d + 1, end):
+                    acc -= data[k] * out[indices[k] - lo]
+            else:
+                for k in range(start, end):
+                    j = indices[k]
+                    if j != i:
+                        acc -= data[k] * (out[j - lo] if lo <= j < hi else x[j])
+            out[r] = acc / data[d]
+
+    @numba.njit(nogil=True, cache=True, fastmath=_FAST)
+    def _residual(indptr, indices, data, x, b, lo, hi, out):  # pragma: no cover - compiled
+        for r in range(hi - lo):
+            i = lo + r
+            acc = b[i]
+            for k in range(indptr[i], indptr[i + 1]):
+                acc -= data[k] * x[indices[k]]
+            out[r] = acc
+
+    @numba.njit(nogil=True, cache=True, fastmath=_FAST)
+    def _product(indptr, indices, data, x, lo, hi, out):  # pragma: no cover - compiled
+        for r in range(hi - lo):
+            i = lo + r
+            acc = 0.0
+            for k in range(indptr[i], indptr[i + 1]):
+                acc += data[k] * x[indices[k]]
+            out[r] = acc
