@@ -98,7 +98,9 @@ class VCycle:
 
     def __init__(self, levels, coarse: sp.csr_matrix):
         self.levels = levels
-        self.smoothers = [RowRuns.smoother(A) for A, _, _ in levels] if row_runs.usable() else None
+        self.smoothers = None  # per level: (A, P, R) in runs of rows (``row_runs``), where numba is installed
+        if row_runs.usable():
+            self.smoothers = [(RowRuns.smoother(A), RowRuns(P), RowRuns(R)) for A, P, R in levels]
         dense = coarse.toarray()
         lost = np.flatnonzero(np.diag(dense) == 0)  # a mode an aggregate could not carry: decoupled
         dense[lost, lost] = 1.0
@@ -129,11 +131,10 @@ class VCycle:
 
     def _hybrid_cycle(self, k: int, B: np.ndarray) -> np.ndarray:
         """``_cycle`` with the hybrid Gauss-Seidel of ``row_runs`` (two threads)."""
-        _, P, R = self.levels[k]
-        smooth = self.smoothers[k]
+        smooth, P, R = self.smoothers[k]
         X = np.stack([smooth.pre(b) for b in B])
-        residual = np.stack([smooth.residual(x, b) for x, b in zip(X, B)])
-        X += (P @ self._cycle(k + 1, np.ascontiguousarray((R @ residual.T).T)).T).T
+        coarse = np.stack([R.product(smooth.residual(x, b)) for x, b in zip(X, B)])
+        X += np.stack([P.product(e) for e in self._cycle(k + 1, coarse)])
         return np.stack([smooth.post(x, b) for x, b in zip(X, B)])
 
 

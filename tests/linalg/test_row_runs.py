@@ -107,7 +107,7 @@ def test_the_cycle_is_symmetric_and_the_same_bits_on_one_thread_or_two(bond_oper
     the cycle on 1 and 2 threads is bit for bit one function (runs fixed, not threads)."""
     p, asm, num, A = bond_operator
     cycle = amg_preconditioner(num, asm.free_index, p.x, pair=A)
-    assert cycle.smoothers is not None and len(cycle.smoothers[0].runs) == 2
+    assert cycle.smoothers is not None and len(cycle.smoothers[0][0].runs) == 2
     rng = np.random.default_rng(2)
     x, y = rng.standard_normal(A.shape[0]), rng.standard_normal(A.shape[0])
     Cx, Cy = cycle(x), cycle(y)
