@@ -14,7 +14,9 @@ One application is a V-cycle: forward Gauss-Seidel, restriction, the coarser cyc
 Cholesky solve on the coarsest level), prolongation, backward Gauss-Seidel. Backward after
 forward makes the cycle a symmetric positive-definite operator, so it preconditions CG and the
 adjoint's solve alike (K is symmetric). Columns of a multi-column right-hand side go through
-each level together. numpy's BLAS runs on one thread in it (``threadpoolctl``): on two shared
+each level together. Where numba is installed the sweeps are hybrid Gauss-Seidel (Gauss-Seidel
+inside runs of rows, Jacobi between) and they, the residuals and the transfers run on two
+threads (``row_runs``); elsewhere pyamg's sweep, which holds the GIL, on one. numpy's BLAS runs on one thread in it (``threadpoolctl``): on two shared
 cores a second BLAS thread made pyamg's set-up 10x and each cycle 4x slower.
 """
 from __future__ import annotations
@@ -145,6 +147,7 @@ def amg_preconditioner(terms, free_index: np.ndarray, positions: np.ndarray,
     level aggregated by cells (``cell_aggregates``), in 3D by pyamg's standard aggregation
     (cells of the same rule gave 24 PCG iterations against its 16 on the cantilever of
     ``fe_convergence``, 20k particles, m = 2; side 4 h gave 15 and no cheaper set-up)."""
+    row_runs.warm_up()
     positions = np.asarray(positions, dtype=np.float64)
     modes = rigid_body_modes(positions)[free_index]
     aggregates = None

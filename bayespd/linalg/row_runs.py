@@ -22,7 +22,10 @@ bond reaches) keeps its value, as in pyamg's sweep.
 """
 from __future__ import annotations
 
+import threading
+
 import numpy as np
+import scipy.sparse as sp
 import torch
 
 from bayespd import bond_loops
@@ -37,6 +40,23 @@ NONE = np.iinfo(np.uint64).max  # a row without a diagonal entry
 def usable() -> bool:
     """True when the compiled loops can run (numba installed, ``bond_loops.ENABLED``)."""
     return bond_loops.usable()
+
+
+def warm_up() -> None:
+    """Load the compiled loops in a background thread, once per process: numba's first call in
+    a process costs ~0.25 s (its compiler's set-up, before the cached code loads), which the
+    AMG set-up that calls this hides on a free core."""
+    if usable() and not _WARM:
+        _WARM.append(threading.Thread(target=_load, name="bayespd-row-runs", daemon=True))
+        _WARM[0].start()
+
+
+_WARM: list = []
+
+
+def _load():
+    runs, b = RowRuns.smoother(sp.identity(2, format="csr")), np.ones(2)
+    runs.post(runs.pre(b), runs.residual(b, runs.product(b)))
 
 
 class RowRuns:
