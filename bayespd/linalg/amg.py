@@ -32,7 +32,8 @@ from threadpoolctl import ThreadpoolController
 import pyamg
 from pyamg import amg_core
 
-from bayespd.linalg import row_runs
+from bayespd.linalg import pair_loops, row_runs
+from bayespd.linalg.assembly import to_numpy
 from bayespd.linalg.row_runs import RowRuns
 
 
@@ -74,8 +75,15 @@ def pair_rows(g, w) -> np.ndarray:
 
 
 def pair_operator(terms, free_index: np.ndarray) -> sp.csr_matrix:
-    """K_b on the free dofs: the ``pair_rows`` of every (gram, data, w) term, each A_t
-    restricted to those rows and the free columns before its product (sorted indices)."""
+    """K_b on the free dofs: the ``pair_rows`` of every (gram, data, w) term (sorted indices);
+    by compiled loops where numba is installed (``pair_loops``), else each A_t restricted to
+    those rows and the free columns before its product."""
+    if row_runs.usable():
+        chosen = [(g, to_numpy(d), to_numpy(w)) for g, d, w in terms]
+        chosen = [(g, d, w, rows) for g, d, w in chosen if len(rows := pair_rows(g, w))]
+        if not chosen:
+            raise ValueError("no two-particle rows (bonds) to build the AMG preconditioner from")
+        return pair_loops.pair_operator(chosen, np.asarray(free_index), terms[0][0].shape[1])
     K = None
     for g, d, w in terms:
         two = pair_rows(g, w)
