@@ -22,6 +22,7 @@ bond reaches) keeps its value, as in pyamg's sweep.
 """
 from __future__ import annotations
 
+import os
 import threading
 
 import numpy as np
@@ -45,13 +46,15 @@ def usable() -> bool:
 def warm_up() -> None:
     """Load the compiled loops in a background thread, once per process: numba's first call in
     a process costs ~0.25 s (its compiler's set-up, before the cached code loads), which the
-    AMG set-up that calls this hides on a free core."""
+    AMG set-up that calls this hides on a free core. A fork waits for it (a child must not
+    inherit numba's compiler lock held by a thread it does not have)."""
     if usable() and not _WARM:
         _WARM.append(threading.Thread(target=_load, name="bayespd-row-runs", daemon=True))
         _WARM[0].start()
 
 
 _WARM: list = []
+os.register_at_fork(before=lambda: _WARM and _WARM[0].join(), after_in_child=_WARM.clear)
 
 
 def _load():
