@@ -19,10 +19,16 @@ from tests.linalg.test_amg import clamped
 pytestmark = pytest.mark.skipif(bond_loops.numba is None, reason="needs numba (the 'fast' or 'dev' extra)")
 
 
+@pytest.fixture(autouse=True)
+def short_runs(monkeypatch):
+    """Runs of >= 256 rows (4,096 in use), so that a small plate has several."""
+    monkeypatch.setattr(row_runs, "MIN_ROWS", 256)
+
+
 @pytest.fixture(scope="module")
 def bond_operator():
-    """K_b of a clamped LPS plate, 80 x 60 particles (9,562 free dofs: two runs of rows)."""
-    p, asm, terms = clamped(nx=80, ny=60)
+    """K_b of a clamped LPS plate, 30 x 12 particles (648 free dofs: two runs of rows)."""
+    p, asm, terms = clamped()
     num = [(g, d.numpy(), w.numpy()) for g, d, w in terms]
     return p, asm, num, pair_operator(num, asm.free_index)
 
@@ -59,7 +65,7 @@ def test_the_product_is_scipys_for_vectors_and_columns():
     """A x for a rectangular A (rows in 3 runs) and x of shape (m,) or (m, 2): scipy's product
     to 1e-14 of its largest term (the loop sums in another order), the same bits on 1 or 2
     threads."""
-    A = sp.random(3 * 4096 + 5, 700, density=0.02, format="csr", random_state=4)
+    A = sp.random(3 * 256 + 5, 700, density=0.02, format="csr", random_state=4)
     runs = RowRuns(A)
     assert len(runs.runs) == 3
     x = np.random.default_rng(4).standard_normal((700, 2))
