@@ -16,8 +16,9 @@ forward makes the cycle a symmetric positive-definite operator, so it preconditi
 adjoint's solve alike (K is symmetric). Columns of a multi-column right-hand side go through
 each level together. Where numba is installed the sweeps are hybrid Gauss-Seidel (Gauss-Seidel
 inside runs of rows, Jacobi between) and they, the residuals and the transfers run on two
-threads (``row_runs``); elsewhere pyamg's sweep, which holds the GIL, on one. numpy's BLAS runs on one thread in it (``threadpoolctl``): on two shared
-cores a second BLAS thread made pyamg's set-up 10x and each cycle 4x slower.
+threads (``row_runs``); elsewhere pyamg's sweep, which holds the GIL, runs on one. numpy's BLAS
+runs on one thread in it (``threadpoolctl``): on two shared cores a second BLAS thread made
+pyamg's set-up 10x and each cycle 4x slower.
 """
 from __future__ import annotations
 
@@ -126,9 +127,9 @@ class VCycle:
     def _cycle(self, k: int, B: np.ndarray) -> np.ndarray:
         if k == len(self.levels):
             return np.ascontiguousarray(sla.cho_solve(self.coarse, B.T).T)
-        A, P, R = self.levels[k]
         if self.smoothers is not None:
             return self._hybrid_cycle(k, B)
+        A, P, R = self.levels[k]
         n = A.shape[0]
         X = np.zeros_like(B)
         for j in range(len(B)):

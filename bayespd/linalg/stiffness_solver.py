@@ -12,9 +12,9 @@ import numpy as np
 import scipy.sparse as sp
 import torch
 
+from bayespd.linalg import row_runs
 from bayespd.linalg.amg import amg_preconditioner, pair_operator, pair_rows
 from bayespd.linalg.assembly import Gram, numeric_values, to_numpy, union_pattern
-from bayespd.linalg import row_runs
 from bayespd.linalg.config import current_settings
 from bayespd.linalg.row_runs import RowRuns
 from bayespd.linalg.sparse import (NotPositiveDefiniteError, Pattern, PCGFactor, blas_threads, cholmod,
