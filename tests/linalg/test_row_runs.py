@@ -34,19 +34,21 @@ def bond_operator():
 
 
 def block_reference(A, b, x, runs, forward):
-    """One hybrid sweep by dense algebra: x + (D + L_run)^-1 (b - A x) per run (forward),
-    (D + U_run)^-1 (backward), L_run / U_run the strict triangles inside the run."""
+    """One l1 hybrid sweep by dense algebra: x + (D + D_l1 + L_run)^-1 (b - A x) per run
+    (forward), (D + D_l1 + U_run)^-1 (backward), L_run / U_run the strict triangles inside the
+    run, D_l1 the absolute row sums outside it."""
     A = A.toarray()
     out = x.copy()
     for lo, hi in runs:
         block = A[lo:hi, lo:hi]
-        M = np.tril(block) if forward else np.triu(block)
+        l1 = np.abs(A[lo:hi]).sum(axis=1) - np.abs(block).sum(axis=1)
+        M = (np.tril(block) if forward else np.triu(block)) + np.diag(l1)
         out[lo:hi] = x[lo:hi] + np.linalg.solve(M, b[lo:hi] - A[lo:hi] @ x)
     return out
 
 
 def test_one_sweep_is_gauss_seidel_inside_each_run_and_jacobi_between(bond_operator):
-    """pre(b) = blockdiag(D + L)^-1 b and post(x, b) = x + blockdiag(D + U)^-1 (b - A x) to
+    """pre(b) = blockdiag(D + D_l1 + L)^-1 b and post(x, b) = x + blockdiag(D + D_l1 + U)^-1 (b - A x) to
     1e-12 relative (triangular solves of a diagonally dominant-ish SPD matrix: a few ulp times
     the row length)."""
     *_, A = bond_operator
