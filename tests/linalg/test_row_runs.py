@@ -83,6 +83,24 @@ def test_the_product_is_scipys_for_vectors_and_columns():
     assert np.array_equal(one, runs.product(x))
 
 
+def test_the_l1_smoother_converges_where_plain_hybrid_gauss_seidel_does_not():
+    """An SPD matrix far from diagonal dominance (B^T B, B sparse random + I), two runs: with
+    the l1 pivots M + M^T - A is positive definite (Baker et al. 2011, Theorem 6.2: the
+    smoother converges, the cycle is SPD), where blockdiag(D + L) gives an indefinite one
+    (what made the FE peer of fe_convergence diverge)."""
+    B = sp.random(600, 600, density=0.01, random_state=5) + sp.identity(600)
+    A = (B.T @ B).tocsr()
+    smooth = RowRuns.smoother(A)
+    assert len(smooth.runs) == 2
+    M = np.linalg.inv(np.column_stack([smooth.pre(e) for e in np.identity(600)]))
+    dense = A.toarray()
+    assert np.linalg.eigvalsh(M + M.T - dense).min() > 0
+    plain = np.zeros_like(dense)
+    for lo, hi in smooth.runs:
+        plain[lo:hi, lo:hi] = np.tril(dense[lo:hi, lo:hi])
+    assert np.linalg.eigvalsh(plain + plain.T - dense).min() < 0
+
+
 def test_one_run_is_pyamgs_sweep(bond_operator, monkeypatch):
     """With a single run the hybrid sweep is plain Gauss-Seidel: pyamg's forward sweep from 0 and
     its backward sweep, to 1e-12 relative (the compiled loop sums a row in another order)."""
