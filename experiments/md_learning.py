@@ -221,7 +221,8 @@ def bayes(best, data, md_moduli, quick, structured=True):
         k_train = torch.as_tensor(modes * 2 * np.pi / sheet.box)
         train_shell = shell_of(k_train.numpy(), h, SHELLS)
     pred, fresh, inadmissible = [], [], 0
-    for k in range(0, len(draws["mu"]), max(1, len(draws["mu"]) // 50)):
+    for k in range(len(draws["mu"])):  # every draw: the 5-95 % quantiles of n draws hold a new draw of the same law
+        # with probability (q95 - q05 order positions) / (n + 1): 0.891 for n = 200, 0.865 for the 50 used before
         p = lps_params(draws["lambda"][k], draws["mu"][k], draws["D"][k], draws["delta"][k])
         try:
             with torch.no_grad():
