@@ -33,7 +33,7 @@ from bayespd.infer.nested import nested_laplace
 from bayespd.learn.coarse_grain import coarse_grain
 from bayespd.learn.discrepancy import learn_s0, relative_error
 from bayespd.learn.dispersion import (common_offset_posterior, common_offset_prior, error_field, measured_compliance,
-                                      relative_compliance_error, shell_of)
+                                      orbit_errors_on_lattice, relative_compliance_error, shell_of)
 from bayespd.learn.kernel import UnsolvableKernel, learn_kernel, lps_params, relative_errors
 from bayespd.learn.kernel_shape import KernelShape
 from bayespd.learn.moduli import long_wave_moduli
@@ -178,8 +178,8 @@ def bayes(best, data, md_moduli, quick, structured=True):
     measured compliance) or of models/md_kernel.py (nodal iid relative noise) at the phase-1 fit;
     90 % predictive bands on the validation loads (parameter draws + the model's error term; the
     structured model's common offset drawn from its conditional posterior given the draw and the
-    training compliances, and, for comparison, from its prior N(0, tau^2)), their node coverage and
-    width; whether the 90 % intervals of the 2D moduli hold the MD sheet's."""
+    training compliances, and, for comparison, from its prior N(0, tau^2), and with the training
+    waves' own errors fixed at the draw's measured ones), their node coverage and width; whether the 90 % intervals of the 2D moduli hold the MD sheet's."""
     sheet = data["sheet"]
     f, u = data["train"]
     y = sheet.zero_mean(u)
@@ -220,7 +220,7 @@ def bayes(best, data, md_moduli, quick, structured=True):
     if structured:
         k_train = torch.as_tensor(modes * 2 * np.pi / sheet.box)
         train_shell = shell_of(k_train.numpy(), h, SHELLS)
-    pred, fresh, inadmissible = [], [], 0
+    pred, fresh, pinned, inadmissible = [], [], [], 0
     for k in range(len(draws["mu"])):  # every draw: the 5-95 % quantiles of n draws hold a new draw of the same law
         # with probability (q95 - q05 order positions) / (n + 1): 0.891 for n = 200, 0.865 for the 50 used before
         p = lps_params(draws["lambda"][k], draws["mu"][k], draws["D"][k], draws["delta"][k])
@@ -235,6 +235,8 @@ def bayes(best, data, md_moduli, quick, structured=True):
                     error = error_field(S_all, fv, s_k[shell], offset, n, generator).numpy()
                     fresh.append(mean + error_field(S_all, fv, s_k[shell], common_offset_prior(tau_k).sample(generator),
                                                     n, generator).numpy())
+                    pinned.append(mean + error_field(S_all, fv, s_k[shell], offset, n, generator,
+                                                     known=orbit_errors_on_lattice(modes, Delta, n)).numpy())
                 else:
                     error = draws["sigma"][k] * sv[:, None, None] * rng.standard_normal(mean.shape)
         except (ValueError, NotPositiveDefiniteError):  # a Gaussian draw outside the admissible kernels
@@ -257,6 +259,8 @@ def bayes(best, data, md_moduli, quick, structured=True):
             "shells_kh": SHELLS if structured else None, "wall_time_s": wall, "draws": len(draws["mu"]),
             "posterior": summary, "validation_band90_node_coverage": coverage, "validation_band90_width_rel": width,
             "validation_band90_prior_offset": dict(zip(("node_coverage", "width_rel"), band(fresh))) if fresh else None,
+            "validation_band90_training_waves_known": dict(zip(("node_coverage", "width_rel"), band(pinned))) if pinned
+            else None,
             "moduli_interval90_covers_md": covers, "predictive_draws": len(pred), "inadmissible_draws": inadmissible}
 
 

@@ -132,13 +132,31 @@ def common_offset_posterior(Delta: torch.Tensor, s: torch.Tensor, tau: float, of
     return CommonOffset(_symmetric(mean), _symmetric(sd))
 
 
+def orbit_errors_on_lattice(modes, Delta: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(index (m,) into ``PeriodicSheet.wavevectors``, Delta (m, 2, 2)): every lattice wavevector of
+    the orbits {(+-n1, +-n2)} of ``modes`` (O, 2) with its relative error as measured_compliance
+    defines it: Delta_o at (n1, n2) and (-n1, -n2), M Delta_o M at the mirror pair (M = diag(1, -1));
+    where two of those coincide (an axis, the Nyquist index) their mean (on an axis Delta_o's
+    diagonal: the off-diagonal entry is not data there)."""
+    Delta = torch.as_tensor(Delta)
+    M = torch.tensor([1.0, -1.0], dtype=Delta.dtype)
+    found = {}
+    for (n1, n2), D in zip(np.asarray(modes).tolist(), Delta):
+        mirrored = M[:, None] * D * M[None, :]
+        for i, j, value in ((n1, n2, D), (-n1 % n, -n2 % n, D), (n1, -n2 % n, mirrored), (-n1 % n, n2, mirrored)):
+            found.setdefault(i * n + j - 1, []).append(value)
+    index = sorted(found)
+    return torch.as_tensor(index), torch.stack([torch.stack(found[k]).mean(0) for k in index])
+
+
 def error_field(S: torch.Tensor, forces: torch.Tensor, s: torch.Tensor, offset: torch.Tensor, n: int,
-                generator: torch.Generator) -> torch.Tensor:
+                generator: torch.Generator, known: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
     """One draw of the model error u_md - u_pd (loads, n * n, 2) under ``forces`` (loads, n * n, 2):
     at each k != 0, L^-T Delta(k) L^-1 f_hat(k) with S (n * n - 1, 2, 2) the symbols at
     ``PeriodicSheet.wavevectors``, Delta(k) = Delta(-k) symmetric of entries N(0, s_k^2) (s_k^2 / 2
     off the diagonal; ``s`` (n * n - 1,)) plus ``offset`` (2, 2, symmetric), common to every k (a
-    draw of ``common_offset_prior`` or ``common_offset_posterior``)."""
+    draw of ``common_offset_prior`` or ``common_offset_posterior``); ``known``: (index, Delta) of
+    wavevectors whose error the data fix (``orbit_errors_on_lattice``), which replace the draw there."""
     if offset.shape != (2, 2) or not torch.equal(offset, offset.T):
         raise ValueError(f"the common offset must be a symmetric 2 x 2 matrix (CommonOffset.sample), got {offset}")
     A = torch.randn(n * n, 2, 2, dtype=S.dtype, generator=generator)
@@ -146,6 +164,8 @@ def error_field(S: torch.Tensor, forces: torch.Tensor, s: torch.Tensor, offset: 
     flat, partner = (a * n + b).ravel(), ((-a % n) * n + (-b % n)).ravel()
     A = s[:, None, None] * A[torch.as_tensor(np.minimum(flat, partner))][1:]  # one Delta for k and -k
     Delta = (A + A.transpose(-1, -2)) / 2 + offset  # the diagonal A's own, N(0, s^2); off it N(0, s^2 / 2)
+    if known is not None:
+        Delta[known[0]] = known[1].to(Delta.dtype)
     Linv = torch.linalg.inv(torch.linalg.cholesky(S)).to(torch.complex128)
     f_hat = torch.fft.fft2(torch.as_tensor(forces).reshape(-1, n, n, 2), dim=(1, 2)).reshape(len(forces), -1, 2)
     e_hat = torch.zeros_like(f_hat)

@@ -8,7 +8,7 @@ import torch
 from scipy import stats
 
 from bayespd.learn.dispersion import (common_offset_posterior, common_offset_prior, error_field, measured_compliance,
-                                      relative_compliance_error, shell_of)
+                                      orbit_errors_on_lattice, relative_compliance_error, shell_of)
 from bayespd.learn.kernel import lps_params
 from bayespd.linalg.sparse import NotPositiveDefiniteError
 from tests.learn.test_kernel import sheet
@@ -166,6 +166,34 @@ def test_the_common_offset_posterior_intervals_are_calibrated():
         assert abs(float(z.mean())) < 4 / np.sqrt(draws)
         assert abs(float(z.var()) - 1) < 4 * np.sqrt(2 / draws)
     assert torch.equal(samples[:, 0, 1], samples[:, 1, 0])
+
+
+def test_known_orbit_errors_are_what_the_loads_then_measure():
+    """An error field with the orbits' errors pinned (orbit_errors_on_lattice: the mirror pair's
+    M Delta M) added to the PD response of eq 5.1's loads on those orbits measures back Delta_o
+    (diagonal; off it where n1 n2 != 0, else 0) to 1e-12, whatever the other wavevectors draw;
+    an axis orbit folds its coinciding wavevectors."""
+    s, n, p = pd_sheet()
+    modes = np.array([(1, 0), (0, 2), (1, 1), (2, 3), (4, 1)])
+    rng = np.random.default_rng(5)
+    Delta = torch.as_tensor(rng.normal(0, 0.05, (len(modes), 2, 2)))
+    Delta = (Delta + Delta.transpose(-1, -2)) / 2
+    index, values = orbit_errors_on_lattice(modes, Delta, n)
+    assert len(index) == 2 + 2 + 4 + 4 + 4 and len(set(index.tolist())) == len(index)
+    f = eq51_forces(s, modes)
+    with torch.no_grad():
+        u = s.spectral_solve(p, f)
+        S = s.symbol(p, s.wavevectors)
+    generator = torch.Generator().manual_seed(0)
+    e = error_field(S, f, torch.full((n * n - 1,), 0.05), common_offset_prior(0.03).sample(generator), n, generator,
+                    known=(index, values))
+    found, C, off = measured_compliance(f, u + e, n)
+    assert found.tolist() == sorted(modes.tolist())
+    order = [modes.tolist().index(m) for m in found.tolist()]
+    got, _ = relative_compliance_error(s.symbol(p, torch.as_tensor(found * 2 * np.pi / s.box)).detach(), C)
+    want = Delta[order].clone()
+    want[~off, 0, 1] = want[~off, 1, 0] = 0.0
+    assert float((got - want).abs().max()) < 1e-12
 
 
 def test_bad_offset_input_is_refused():
