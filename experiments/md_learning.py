@@ -217,6 +217,7 @@ def bayes(best, data, md_moduli, quick, structured=True):
     k_all = sheet.wavevectors
     shell = shell_of(k_all.numpy(), h, SHELLS)
     rng, generator = np.random.default_rng(0), torch.Generator().manual_seed(0)
+    compare = torch.Generator().manual_seed(1)  # the comparison bands' own stream: the default's draws do not depend on them
     if structured:
         k_train = torch.as_tensor(modes * 2 * np.pi / sheet.box)
         train_shell = shell_of(k_train.numpy(), h, SHELLS)
@@ -233,9 +234,9 @@ def bayes(best, data, md_moduli, quick, structured=True):
                     Delta, _ = relative_compliance_error(sheet.symbol(p, k_train), C)
                     offset = common_offset_posterior(Delta, s_k[train_shell], tau_k, off).sample(generator)
                     error = error_field(S_all, fv, s_k[shell], offset, n, generator).numpy()
-                    fresh.append(mean + error_field(S_all, fv, s_k[shell], common_offset_prior(tau_k).sample(generator),
-                                                    n, generator).numpy())
-                    pinned.append(mean + error_field(S_all, fv, s_k[shell], offset, n, generator,
+                    fresh.append(mean + error_field(S_all, fv, s_k[shell], common_offset_prior(tau_k).sample(compare),
+                                                    n, compare).numpy())
+                    pinned.append(mean + error_field(S_all, fv, s_k[shell], offset, n, compare,
                                                      known=orbit_errors_on_lattice(modes, Delta, n)).numpy())
                 else:
                     error = draws["sigma"][k] * sv[:, None, None] * rng.standard_normal(mean.shape)
@@ -261,7 +262,20 @@ def bayes(best, data, md_moduli, quick, structured=True):
             "validation_band90_prior_offset": dict(zip(("node_coverage", "width_rel"), band(fresh))) if fresh else None,
             "validation_band90_training_waves_known": dict(zip(("node_coverage", "width_rel"), band(pinned))) if pinned
             else None,
+            "validation_training_waves": _training_wave_share(fv, yv, pinned, modes, n) if pinned else None,
             "moduli_interval90_covers_md": covers, "predictive_draws": len(pred), "inadmissible_draws": inadmissible}
+
+
+def _training_wave_share(forces, y, pinned, modes, n):
+    """What the validation loads share with the training waves: each load's power on the training
+    orbits' lattice wavevectors, and the relative error of the mean prediction with those waves'
+    measured errors fixed (there it is the measured compliance times the load, whatever the draw)."""
+    index = orbit_errors_on_lattice(modes, torch.zeros(len(modes), 2, 2, dtype=torch.float64), n)[0] + 1
+    power = torch.fft.fft2(torch.as_tensor(forces).reshape(-1, n, n, 2), dim=(1, 2)).abs().pow(2).sum(-1).reshape(len(y), -1)
+    mean = np.mean(pinned, 0)
+    error = np.sqrt(((mean - y) ** 2).sum((1, 2)) / (y**2).sum((1, 2)))
+    return {"load_power_share": (power[:, index].sum(1) / power.sum(1)).tolist(),
+            "measured_compliance_rel_error": error.tolist(), "measured_compliance_rel_error_mean": float(error.mean())}
 
 
 def main():
