@@ -89,14 +89,20 @@ def find_map(space, hessian_fn=None, gtol=1e-8, max_iter=1000, newton_steps=30, 
     return z, float(u), g, h, evaluations
 
 
+def newton_decrement(g, h) -> float:
+    """g^T H^-1 g (twice the quadratic model's predicted decrease), inf where H is not positive
+    definite."""
+    chol, info = torch.linalg.cholesky_ex((h + h.T) / 2)
+    return float(g @ torch.cholesky_solve(g[:, None], chol)[:, 0]) if not info else math.inf
+
+
 def _warn_if_not_a_mode(g, h, u, res):
     """Warn when the search ended where the gradient does not vanish: Newton decrement
     g^T H^-1 g above 1e-6 (more than 1e-3 posterior sd from the quadratic model's mode), or,
     without a Hessian, when max |grad| exceeds 1e-4 max(1, |potential|) (a stall at a kink
     ends L-BFGS through its relative-reduction test, which scipy also calls success)."""
     if h is not None:
-        chol, info = torch.linalg.cholesky_ex((h + h.T) / 2)
-        decrement = float(g @ torch.cholesky_solve(g[:, None], chol)[:, 0]) if not info else math.inf
+        decrement = newton_decrement(g, h)
         if decrement <= 1e-6:
             return
         detail = f"Newton decrement {decrement:.3g}"

@@ -12,9 +12,13 @@ compliance error per orbit {(+-k1, +-k2)},
 
 its off-diagonal entry only where n1 n2 != 0 (on the axes both vanish by the mirror symmetry).
 These are the independent errors the data hold: a nodal likelihood counts each orbit's 2 N values
-of each load.
+of each load. An offset common to every orbit (models/md_dispersion.py's tau) is tied by them to the
+parameters: predictive error fields draw it from its conditional posterior (``common_offset_posterior``).
 """
 from __future__ import annotations
+
+import math
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -68,19 +72,100 @@ def shell_of(wavevectors, h: float, edges) -> torch.Tensor:
     return torch.as_tensor(np.searchsorted(edges, np.linalg.norm(np.asarray(wavevectors), axis=-1) * h))
 
 
-def error_field(S: torch.Tensor, forces: torch.Tensor, s: torch.Tensor, tau: float, n: int,
-                generator: torch.Generator) -> torch.Tensor:
+class CommonOffset(NamedTuple):
+    """A normal law of the offset c (2 x 2, symmetric) common to the relative compliance errors of
+    every wavevector: entries 00, 11, 01 independent, with means ``mean`` and sds ``sd`` (both
+    (2, 2), symmetric)."""
+
+    mean: torch.Tensor
+    sd: torch.Tensor
+
+    def sample(self, generator: torch.Generator) -> torch.Tensor:
+        z = torch.randn(3, dtype=self.mean.dtype, generator=generator)
+        Z = torch.stack([torch.stack([z[0], z[2]]), torch.stack([z[2], z[1]])])
+        return self.mean + self.sd * Z
+
+
+_ENTRY_SCALE = (1.0, 1.0, math.sqrt(0.5))  # entries 00, 11, 01: sd s and tau on the diagonal, s / sqrt 2 and tau / sqrt 2 off it
+
+
+def _symmetric(values) -> torch.Tensor:
+    a, b, c = values
+    return torch.stack([torch.stack([a, c]), torch.stack([c, b])])
+
+
+def common_offset_prior(tau: float) -> CommonOffset:
+    """The offset's prior of models/md_dispersion.py: mean 0, sd tau on the diagonal and tau / sqrt 2
+    off it (the law of CompliancePerOrbit's common part)."""
+    if not tau > 0:
+        raise ValueError(f"tau must be positive, got {tau}")
+    tau = torch.as_tensor(tau, dtype=torch.float64)
+    return CommonOffset(torch.zeros(2, 2, dtype=tau.dtype), _symmetric([tau * w for w in _ENTRY_SCALE]))
+
+
+def common_offset_posterior(Delta: torch.Tensor, s: torch.Tensor, tau: float, off_diagonal) -> CommonOffset:
+    """The offset's conditional posterior given the relative errors ``Delta`` (O, 2, 2) of the
+    training orbits at fixed parameters (``relative_compliance_error``), their sds ``s`` (O,) and
+    tau; ``off_diagonal`` (O,): the orbits with an 01 entry (n1 n2 != 0).
+
+    CompliancePerOrbit's law, entry e in (00, 11, 01) with scale w_e = (1, 1, 1 / sqrt 2):
+    Delta_oe = c_e + eps_oe, c_e ~ N(0, w_e^2 tau^2), eps_oe ~ N(0, w_e^2 s_o^2) independent over
+    the orbits O_e holding the entry (all for 00 and 11, the off-diagonal ones for 01). Conjugate:
+    c_e | Delta ~ N(m_e, v_e) with v_e = w_e^2 / (1 / tau^2 + sum_{O_e} 1 / s_o^2) and
+    m_e = (v_e / w_e^2) sum_{O_e} Delta_oe / s_o^2 (w_e cancels from the mean; the prior where O_e
+    is empty)."""
+    Delta, s = torch.as_tensor(Delta), torch.as_tensor(s, dtype=torch.float64)
+    off = torch.as_tensor(off_diagonal, dtype=torch.bool)
+    if Delta.ndim != 3 or Delta.shape[1:] != (2, 2) or s.shape != Delta.shape[:1] or off.shape != s.shape:
+        raise ValueError(f"Delta must be (O, 2, 2) with s and off_diagonal (O,), got {tuple(Delta.shape)}, "
+                         f"{tuple(s.shape)}, {tuple(off.shape)}")
+    if not (bool((s > 0).all()) and tau > 0):
+        raise ValueError(f"the error sds must be positive, got s = {s.tolist()}, tau = {tau}")
+    precision = 1.0 / s**2
+    mean, sd = [], []
+    for value, held, w in ((Delta[:, 0, 0], torch.ones_like(off), _ENTRY_SCALE[0]),
+                           (Delta[:, 1, 1], torch.ones_like(off), _ENTRY_SCALE[1]),
+                           (Delta[:, 0, 1], off, _ENTRY_SCALE[2])):
+        total = 1.0 / tau**2 + precision[held].sum()
+        mean.append((precision[held] * value[held]).sum() / total)
+        sd.append(w * total.rsqrt())
+    return CommonOffset(_symmetric(mean), _symmetric(sd))
+
+
+def orbit_errors_on_lattice(modes, Delta: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(index (m,) into ``PeriodicSheet.wavevectors``, Delta (m, 2, 2)): every lattice wavevector of
+    the orbits {(+-n1, +-n2)} of ``modes`` (O, 2) with its relative error as measured_compliance
+    defines it: Delta_o at (n1, n2) and (-n1, -n2), M Delta_o M at the mirror pair (M = diag(1, -1));
+    where two of those coincide (an axis, the Nyquist index) their mean (on an axis Delta_o's
+    diagonal: the off-diagonal entry is not data there)."""
+    Delta = torch.as_tensor(Delta)
+    M = torch.tensor([1.0, -1.0], dtype=Delta.dtype)
+    found = {}
+    for (n1, n2), D in zip(np.asarray(modes).tolist(), Delta):
+        mirrored = M[:, None] * D * M[None, :]
+        for i, j, value in ((n1, n2, D), (-n1 % n, -n2 % n, D), (n1, -n2 % n, mirrored), (-n1 % n, n2, mirrored)):
+            found.setdefault(i * n + j - 1, []).append(value)
+    index = sorted(found)
+    return torch.as_tensor(index), torch.stack([torch.stack(found[k]).mean(0) for k in index])
+
+
+def error_field(S: torch.Tensor, forces: torch.Tensor, s: torch.Tensor, offset: torch.Tensor, n: int,
+                generator: torch.Generator, known: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
     """One draw of the model error u_md - u_pd (loads, n * n, 2) under ``forces`` (loads, n * n, 2):
     at each k != 0, L^-T Delta(k) L^-1 f_hat(k) with S (n * n - 1, 2, 2) the symbols at
     ``PeriodicSheet.wavevectors``, Delta(k) = Delta(-k) symmetric of entries N(0, s_k^2) (s_k^2 / 2
-    off the diagonal; ``s`` (n * n - 1,)) plus one offset common to every k, sd tau (tau / sqrt 2)."""
+    off the diagonal; ``s`` (n * n - 1,)) plus ``offset`` (2, 2, symmetric), common to every k (a
+    draw of ``common_offset_prior`` or ``common_offset_posterior``); ``known``: (index, Delta) of
+    wavevectors whose error the data fix (``orbit_errors_on_lattice``), which replace the draw there."""
+    if offset.shape != (2, 2) or not torch.equal(offset, offset.T):
+        raise ValueError(f"the common offset must be a symmetric 2 x 2 matrix (CommonOffset.sample), got {offset}")
     A = torch.randn(n * n, 2, 2, dtype=S.dtype, generator=generator)
     a, b = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
     flat, partner = (a * n + b).ravel(), ((-a % n) * n + (-b % n)).ravel()
-    A = A[torch.as_tensor(np.minimum(flat, partner))][1:]  # one Delta for k and -k
-    common = torch.randn(2, 2, dtype=S.dtype, generator=generator)
-    A = s[:, None, None] * A + tau * common
-    Delta = (A + A.transpose(-1, -2)) / 2  # the diagonal A's own, N(0, s^2); off it N(0, s^2 / 2)
+    A = s[:, None, None] * A[torch.as_tensor(np.minimum(flat, partner))][1:]  # one Delta for k and -k
+    Delta = (A + A.transpose(-1, -2)) / 2 + offset  # the diagonal A's own, N(0, s^2); off it N(0, s^2 / 2)
+    if known is not None:
+        Delta[known[0]] = known[1].to(Delta.dtype)
     Linv = torch.linalg.inv(torch.linalg.cholesky(S)).to(torch.complex128)
     f_hat = torch.fft.fft2(torch.as_tensor(forces).reshape(-1, n, n, 2), dim=(1, 2)).reshape(len(forces), -1, 2)
     e_hat = torch.zeros_like(f_hat)

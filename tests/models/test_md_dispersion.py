@@ -1,11 +1,13 @@
 """models/md_dispersion.py: its likelihood is the density of the measured compliances by the change
 of variables C = L^-T (I + Delta) L^-1 (checked against the Gaussian of C's entries, to rounding);
-the common offset's limit tau -> 0 is the per-orbit law; shells without an orbit are refused."""
+the common offset's limit tau -> 0 is the per-orbit law and its conditional posterior
+(bayespd.learn.dispersion) is Bayes' rule on log_prob's own scalings; shells without an orbit are refused."""
 import numpy as np
 import pytest
 import torch
 from torch.distributions import MultivariateNormal
 
+from bayespd.learn.dispersion import common_offset_posterior, common_offset_prior, relative_compliance_error
 from bayespd.models.md_dispersion import CompliancePerOrbit, md_dispersion
 from tests.learn.test_dispersion import pd_sheet
 
@@ -52,6 +54,29 @@ def test_a_vanishing_common_offset_is_the_per_orbit_law():
     _, S, off, law, C = symbols_and_data()
     tiny = CompliancePerOrbit(S, law.s, off, torch.tensor(1e-9, dtype=S.dtype))
     assert abs(float(tiny.log_prob(C)) - float(law.log_prob(C))) < 1e-8 * abs(float(law.log_prob(C)))
+
+
+def test_the_common_offset_posterior_is_bayes_rule_on_the_likelihood():
+    """For any offset c: log p_tau(C) = log prior(c) + log p(C | c) - log posterior(c | C), where
+    p(C | c) is the per-orbit law of Delta - c (same Jacobian det S^(q/2)) and prior / posterior
+    the 3-entry normals of learn.dispersion: to 1e-10 relative at three values of c, so the
+    posterior uses CompliancePerOrbit's entry scalings (tau, tau / sqrt 2)."""
+    _, S, off, law, _ = symbols_and_data()
+    tau = torch.tensor(0.04, dtype=S.dtype)
+    C = CompliancePerOrbit(S, law.s, off, tau).sample()
+    Delta, _ = relative_compliance_error(S, C)
+    post, prior = common_offset_posterior(Delta, law.s, float(tau), off), common_offset_prior(float(tau))
+    joint = float(CompliancePerOrbit(S, law.s, off, tau).log_prob(C))
+    Linv = torch.linalg.inv(torch.linalg.cholesky(S))
+    for c in (post.mean, post.mean + 0.01, torch.tensor([[0.03, -0.02], [-0.02, 0.01]], dtype=S.dtype)):
+        shifted = Linv.transpose(-1, -2) @ (torch.eye(2, dtype=S.dtype) + Delta - c) @ Linv
+
+        def log_normal(law_c):
+            return sum(float(torch.distributions.Normal(law_c.mean[i, j], law_c.sd[i, j]).log_prob(c[i, j]))
+                       for i, j in ((0, 0), (1, 1), (0, 1)))
+
+        total = log_normal(prior) + float(law.log_prob(shifted)) - log_normal(post)
+        assert abs(total - joint) < 1e-10 * abs(joint)
 
 
 def test_shells_must_each_hold_an_orbit():
