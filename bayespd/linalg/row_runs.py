@@ -14,8 +14,8 @@ x = M^-1 b from zero, the post-smoother x + M^-T (b - A x), so the cycle is symm
 (x . C y = y . C x), and M + M^T - A is positive definite for every SPD A (their Theorem 6.2),
 so the smoother converges and the cycle preconditions CG. Without the l1 term a finite-element
 stiffness (scikit-fem's Q2 cantilever of ``fe_convergence``) made the cycle indefinite and CG
-diverge; on PD bond operators only the rows next to a run's ends change (same iterations). The run count is fixed by the
-rows, not by the threads: one thread computes what two would.
+diverge; on PD bond operators only the rows next to a run's ends change (same iterations). The
+run count is fixed by the rows, not by the threads: one thread computes what two would.
 
 The loops sum a row in whatever order LLVM vectorises it (``fastmath`` reassociation and fused
 multiply-adds) over unsigned indices (numba checks a signed index for wrap-around): a CSR
