@@ -105,12 +105,13 @@ def pair_operator(terms, free_index: np.ndarray) -> sp.csr_matrix:
 
 class VCycle:
     """r -> M^-1 r, one symmetric V-cycle of a hierarchy (``smoothed_aggregation``), for r of
-    shape (n,) or (n, k)."""
+    shape (n,) or (n, k); ``hybrid``: the two-thread l1 hybrid smoother where numba is
+    installed (else pyamg's sweep)."""
 
-    def __init__(self, levels, coarse: sp.csr_matrix):
+    def __init__(self, levels, coarse: sp.csr_matrix, hybrid: bool = True):
         self.levels = levels
-        self.smoothers = None  # per level: (A, P, R) in runs of rows (``row_runs``), where numba is installed
-        if row_runs.usable():
+        self.smoothers = None  # per level: (A, P, R) in runs of rows (``row_runs``)
+        if hybrid and row_runs.usable():
             self.smoothers = [(RowRuns.smoother(A), RowRuns(P), RowRuns(R)) for A, P, R in levels]
         dense = coarse.toarray()
         lost = np.flatnonzero(np.diag(dense) == 0)  # a mode an aggregate could not carry: decoupled
@@ -209,12 +210,12 @@ def cell_aggregates(positions: np.ndarray, i: np.ndarray, j: np.ndarray,
     return sp.csr_matrix((np.ones(len(rows)), (rows, aggregate)), shape=(len(rows), aggregate.max() + 1))
 
 
-def v_cycle(K: sp.csr_matrix, modes: np.ndarray, aggregates=None) -> VCycle:
+def v_cycle(K: sp.csr_matrix, modes: np.ndarray, aggregates=None, hybrid: bool = True) -> VCycle:
     """The V-cycle of smoothed aggregation on an SPD matrix K with near-null space ``modes``
     (its rigid-body modes, for elasticity); ``aggregates``: the finest level's (default:
-    pyamg's standard aggregation)."""
+    pyamg's standard aggregation); ``hybrid``: as for ``VCycle``."""
     with one_blas_thread():
-        return VCycle(*smoothed_aggregation(K, modes, aggregates=aggregates))
+        return VCycle(*smoothed_aggregation(K, modes, aggregates=aggregates), hybrid=hybrid)
 
 
 def smoothed_aggregation(K: sp.csr_matrix, modes: np.ndarray, max_coarse: int = 300,

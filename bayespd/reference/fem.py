@@ -174,12 +174,15 @@ def spd_solve(A, b: np.ndarray, modes: np.ndarray | None = None) -> np.ndarray:
     PCG with the AMG V-cycle to a relative residual of 1e-10: SuperLU's factor of the 3D
     cantilever's Q2 mesh grew past 4 GB (AMG: 241 iterations, 28 s, 1.9 GB peak). 2D systems
     stay direct: SuperLU factorises the beam's 200k-dof Q2 mesh in seconds, where its graded
-    cells cost AMG 386 iterations (21 s; benchmarks/README.md, issue 31)."""
+    cells cost AMG 386 iterations (21 s; benchmarks/README.md, issue 31). The cycle keeps
+    pyamg's Gauss-Seidel: the two-thread l1 hybrid one (``linalg.row_runs``), made for PD bond
+    operators, took 406 iterations on the cantilever's Q2 stiffness against 241 (25.2 s against
+    23.8 s: its l1 pivots weaken the sweep where a Q2 row's couplings outweigh its diagonal)."""
     A = sp.csr_matrix(A)  # no copy of solve_mesh's CSR: SuperLU's fill alone sets the peak
     A.sum_duplicates()
     A.sort_indices()
     if modes is not None and modes.shape[1] == 6 and choose_solver(A.shape[0], 3, default_backend()) == "amg":
-        return PCGFactor(A.__matmul__, v_cycle(A, modes), A.shape[0], rtol=1e-10).solve(b)
+        return PCGFactor(A.__matmul__, v_cycle(A, modes, hybrid=False), A.shape[0], rtol=1e-10).solve(b)
     if default_backend() == "splu":  # A is symmetric: its CSR arrays are its CSC arrays
         return splu_factor(sp.csc_matrix((A.data, A.indices, A.indptr), shape=A.shape)).solve(b)
     A = A.tocsc()
