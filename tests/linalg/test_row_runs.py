@@ -21,8 +21,10 @@ pytestmark = pytest.mark.skipif(bond_loops.numba is None, reason="needs numba (t
 
 @pytest.fixture(autouse=True)
 def short_runs(monkeypatch):
-    """Runs of >= 256 rows (4,096 in use), so that a small plate has several."""
+    """Runs of >= 256 rows (4,096 in use) whatever the bandwidth (3 in use), so that small
+    matrices have several."""
     monkeypatch.setattr(row_runs, "MIN_ROWS", 256)
+    monkeypatch.setattr(row_runs, "BANDWIDTHS", 0)
 
 
 @pytest.fixture(scope="module")
@@ -99,6 +101,17 @@ def test_the_l1_smoother_converges_where_plain_hybrid_gauss_seidel_does_not():
     for lo, hi in smooth.runs:
         plain[lo:hi, lo:hi] = np.tril(dense[lo:hi, lo:hi])
     assert np.linalg.eigvalsh(plain + plain.T - dense).min() < 0
+
+
+def test_a_smoothers_runs_span_three_bandwidths(monkeypatch):
+    """A banded SPD matrix of bandwidth 300 on 4,000 rows: the smoother's runs are >= 900 rows
+    (4 runs), the product's only >= MIN_ROWS (8 runs: it crosses no coupling)."""
+    monkeypatch.setattr(row_runs, "BANDWIDTHS", 3)
+    A = sp.diags([np.full(4000 - abs(k), 1.0 if k else 700.0) for k in (-300, -1, 0, 1, 300)],
+                 [-300, -1, 0, 1, 300], format="csr")
+    smooth, product = RowRuns.smoother(A), RowRuns(A)
+    assert len(smooth.runs) == 4 and min(hi - lo for lo, hi in smooth.runs) >= 900
+    assert len(product.runs) == 8
 
 
 def test_one_run_is_pyamgs_sweep(bond_operator, monkeypatch):
