@@ -72,8 +72,9 @@ def _load():
 
 
 class RowRuns:
-    """A CSR matrix A (n x m) in runs of rows: ``product``, and for a square A with sorted
-    indices the sweeps ``pre``, ``residual``, ``post``."""
+    """A CSR matrix A (n x m) in runs of rows (at most ``RUNS``, each at least ``MIN_ROWS`` and
+    ``shortest`` rows long): ``product``, and for ``smoother``'s runs the sweeps ``pre``,
+    ``residual``, ``post``."""
 
     def __init__(self, A, shortest: int | None = None):
         self.A = A
