@@ -2,8 +2,8 @@
 where installed) straight into its CSR on the free dofs: the AMG path's bond operator
 (``bayespd.linalg.amg.pair_operator``).
 
-scipy forms it as a sparse product after restricting and transposing each A_t, five copies of
-the bond operator's entries (at 160k particles, m = 2: 6.4 M entries each) and a product whose
+scipy forms it as a sparse product after restricting and transposing each A_t, several copies
+of the bond operator's entries (at 160k particles, m = 2: 6.4 M entries each) and a product whose
 output is faulted in afresh; here one pass over the rows writes each bond's four b x b blocks,
 
     (p, p) += w a a^T,   (p, q) += w a c^T,   (q, p) += w c a^T,   (q, q) += w c c^T,
@@ -13,8 +13,9 @@ particles' neighbour lists, each sorted, the particle itself included: every dia
 in it, as in the product). Entries at constrained dofs are left out, so the rows and columns
 are the free dofs, in their order, with sorted indices; entries that sum to exactly 0 are
 dropped, as scipy's product drops them (an axis-aligned bond's n n^T has three: at 160k
-particles, m = 2, they would add 40 % to the entries every smoothing sweep reads). Each entry is summed over the bonds
-in row order, where scipy's product sums in another: the two agree to rounding (tested).
+particles, m = 2, they would add 40 % to the entries every smoothing sweep reads). Each entry is
+summed over the bonds in row order, where scipy's product sums in another: the two agree to
+rounding (tested).
 """
 from __future__ import annotations
 
