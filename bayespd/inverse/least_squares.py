@@ -289,13 +289,16 @@ def tikhonov(scene, y, init: dict, *, fixed: dict | None = None, mask=None, sigm
     bounded = bool(np.isfinite(lo).any() or np.isfinite(hi).any())
     if method == "Newton-CG" and bounded:
         raise ValueError("Newton-CG takes no bounds: use method='trust-constr' or 'L-BFGS-B'")
-    z, history, wall, iterations = np.clip(f.z0, lo, hi), [], 0.0, 0
+    z, history, wall, iterations, first_J0 = np.clip(f.z0, lo, hi), [], 0.0, 0, None
     for _ in range(1 + REFRESHES):
-        z, J, converged, reason, message, its, hist, seconds = _minimise(
+        z, J, converged, reason, message, its, hist, seconds, J0 = _minimise(
             f, z, lo, hi, method, gtol, ftol, maxiter, maxfun, stall)
         history, wall, iterations = history + hist, wall + seconds, iterations + its
+        first_J0 = J0 if first_J0 is None else first_J0
         if f.weights is None or f.refresh(z) <= REFRESH:
             break
+        if converged and f(z)[0] <= EXACT_FIT * first_J0:  # fitted to round-off of the first start: a
+            break  # rerun would start on J's round-off floor, where its relative tests mean nothing
     else:
         J, converged = f(z)[0], False
         reason = f"the discrepancy's scale still moved by more than {REFRESH:.0%} after {REFRESHES} reruns"
@@ -320,7 +323,7 @@ def tikhonov(scene, y, init: dict, *, fixed: dict | None = None, mask=None, sigm
 
 def _minimise(f, z0, lo, hi, method, gtol, ftol, maxiter, maxfun, stall):
     """One run of the optimiser from z0 under the stopping rules of :func:`tikhonov`:
-    (z, J, converged, reason, message, iterations, history, wall time)."""
+    (z, J, converged, reason, message, iterations, history, wall time, J at z0)."""
     bounded = bool(np.isfinite(lo).any() or np.isfinite(hi).any())
     J0 = f(z0)[0]
     scale = (J0 if J0 > 0 else 1.0) * gtol  # the optimisers' own gradient tests at 1 are ours
@@ -372,4 +375,4 @@ def _minimise(f, z0, lo, hi, method, gtol, ftol, maxiter, maxfun, stall):
         converged = False
         reason = (f"maxiter={maxiter} iterations spent" if iterations >= maxiter else
                   f"the optimiser stopped ({message}) with projected gradient {pg:.3g} > gtol={gtol:g}")
-    return z, J, converged, reason, message, iterations, history, wall
+    return z, J, converged, reason, message, iterations, history, wall, J0
