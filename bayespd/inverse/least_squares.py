@@ -295,10 +295,10 @@ def tikhonov(scene, y, init: dict, *, fixed: dict | None = None, mask=None, sigm
             f, z, lo, hi, method, gtol, ftol, maxiter, maxfun, stall)
         history, wall, iterations = history + hist, wall + seconds, iterations + its
         first_J0 = J0 if first_J0 is None else first_J0
-        if f.weights is None or f.refresh(z) <= REFRESH:
+        # an exact fit (to round-off of the first start) needs no refresh: its residual is 0 under
+        # any covariance, and a rerun would start on J's round-off floor, where its tests mean nothing
+        if f.weights is None or J <= EXACT_FIT * first_J0 or f.refresh(z) <= REFRESH:
             break
-        if converged and f(z)[0] <= EXACT_FIT * first_J0:  # fitted to round-off of the first start: a
-            break  # rerun would start on J's round-off floor, where its relative tests mean nothing
     else:
         J, converged = f(z)[0], False
         reason = f"the discrepancy's scale still moved by more than {REFRESH:.0%} after {REFRESHES} reruns"

@@ -175,13 +175,14 @@ class Assembly:
         CT = C.T.tocsr() if rest else None
         W = np.concatenate([w for _, w in rest]) if rest else None
 
-        times = (lambda M: RowRuns(M).product) if row_runs.usable() else (lambda M: M.__matmul__)
-        K_b, C_times, CT_times = times(pair), *((times(C), times(CT)) if rest else (None, None))
+        product = (lambda M: RowRuns(M).product) if row_runs.usable() else (lambda M: M.__matmul__)
+        K_b = product(pair)
+        C_x, CT_x = (product(C), product(CT)) if rest else (None, None)
 
         def matvec(x):
             y = K_b(x)
             if C is not None:
-                y += CT_times(W.reshape(-1, *([1] * (x.ndim - 1))) * C_times(x))
+                y += CT_x(W.reshape(-1, *([1] * (x.ndim - 1))) * C_x(x))
             return y
 
         return matvec
