@@ -213,6 +213,12 @@ def cached_kernel(fn):
     return fn if numba is None else numba.njit(nogil=True, cache=True)(fn)
 
 
+def fast_kernel(fn):
+    """``cached_kernel`` with ``fastmath`` reassociation and contraction: a sum in whatever
+    order LLVM vectorises it, with fused multiply-adds (``linalg.row_runs``, ``linalg.bond_sums``)."""
+    return fn if numba is None else numba.njit(nogil=True, cache=True, fastmath={"reassoc", "contract"})(fn)
+
+
 # (y, |y|, eta . (y + xi)) of bond b from particle p to q (e = that / (|y| + |xi|)), y a
 # tuple: the components written out, which the compiler keeps in registers (a loop over an
 # array of them, or a branch on the dimension inside one function, is slower). The kernels

@@ -27,12 +27,12 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
 from threadpoolctl import ThreadpoolController
 
 import pyamg
 from pyamg import amg_core
 
+from bayespd import bond_loops
 from bayespd.linalg import pair_loops, row_runs
 from bayespd.linalg.assembly import to_numpy
 from bayespd.linalg.row_runs import RowRuns
@@ -171,8 +171,10 @@ def bond_ends(terms) -> tuple[np.ndarray, np.ndarray]:
     bonds that K_b holds) of every (gram, data, w) term."""
     ends = []
     for g, _, w in terms:
-        ind, ptr = g.block_parts()
         two = g.two_block_rows[np.asarray(w)[g.two_block_rows] > 0]
+        if len(two) == 0:
+            continue
+        ind, ptr = g.block_parts()
         ends.append((ind[ptr[two]], ind[ptr[two] + 1]))
     return np.concatenate([a for a, _ in ends]), np.concatenate([b for _, b in ends])
 
@@ -198,10 +200,7 @@ def cell_aggregates(positions: np.ndarray, i: np.ndarray, j: np.ndarray,
     side = h * np.floor(3 * r / h)
     cell = np.floor((x - x.min(axis=0) + h / 2) / side).astype(np.int64)  # no particle on a cell face
     cell = np.ravel_multi_index(cell.T, cell.max(axis=0) + 1)
-    inside = cell[i] == cell[j]
-    n = len(x)
-    graph = sp.csr_matrix((np.ones(int(inside.sum())), (i[inside], j[inside])), shape=(n, n))
-    count, part = connected_components(graph, directed=False)
+    count, part = bond_loops.components(len(x), i, j, keep=cell[i] == cell[j])
     part = part[dof_particle]
     used = np.zeros(count, dtype=bool)
     used[part] = True
@@ -225,7 +224,8 @@ def smoothed_aggregation(K: sp.csr_matrix, modes: np.ndarray, max_coarse: int = 
     (coarsening while a level has more than ``max_coarse`` nodes, a coarse node being the
     len(modes) dofs of one aggregate, aggregated whole; strength theta = 0, i.e. A's own pattern; standard aggregation; tentative prolongator T
     fitted to ``modes``; one Jacobi step P = T - omega / rho(D^-1 A) D^-1 A T), the products
-    in CSR (pyamg's 1 x 1-block BSR products took half its set-up) and rho by a seeded Lanczos
+    in CSR (pyamg's 1 x 1-block BSR products took half its set-up; scipy's, on two threads
+    where numba is installed: ``RowRuns.times``) and rho by a seeded Lanczos
     on D^-1/2 A D^-1/2 (same spectrum, symmetric), estimated in a second thread while the
     aggregates, T and A T are made. ``aggregates``: the finest level's, as (dofs, aggregates)
     CSR with one 1 per row (``cell_aggregates``) instead of pyamg's, or a function of nothing
@@ -249,13 +249,14 @@ def smoothed_aggregation(K: sp.csr_matrix, modes: np.ndarray, max_coarse: int = 
                 aggregates, _ = pyamg.aggregation.standard_aggregation(_node_graph(A, B.shape[1] if levels else 1))
             T, B = pyamg.aggregation.fit_candidates(aggregates, B)
             T = T.tocsr()
-            AT = A @ T
-            AT = sp.diags(d_inv * (omega / rho.result())) @ AT
+            times = RowRuns(A).times if row_runs.usable() else A.__matmul__  # scipy's product, on two threads
+            AT = times(T)
+            AT.data *= np.repeat(d_inv * (omega / rho.result()), np.diff(AT.indptr))  # D^-1 A T, rows scaled in place
             P = (T - AT).tocsr()
             del AT, T
             R = P.T.tocsr()
             levels.append((A, P, R))
-            A = (R @ (A @ P)).tocsr()
+            A = (RowRuns(R).times(times(P)) if row_runs.usable() else R @ (A @ P)).tocsr()
     return levels, A
 
 

@@ -158,12 +158,17 @@ class Assembly:
         return matvec
 
     def _split_operator(self, terms, pair: sp.csr_matrix):
-        """x -> K_b x + C_r^T (W_r (C_r x)): K_b = ``pair`` (the ``amg.pair_rows`` of every
-        term), C_r the remaining rows (multi-particle rows such as LPS dilatations, negative
-        weights) on the free columns, its transpose stored as CSR (a gather, not a scatter);
-        each product in runs of rows on two threads where numba is installed (``row_runs``)."""
-        rest = []
+        """x -> K_b x + C_r^T (W_r (C_r x)) + sum A^T (w A x): K_b = ``pair`` (the
+        ``amg.pair_rows`` of every term), C_r the remaining rows of the Grams (multi-particle
+        rows, negative weights) on the free columns, its transpose stored as CSR (a gather, not
+        a scatter), each product in runs of rows on two threads where numba is installed
+        (``row_runs``); the factored terms (``BondSums``: the LPS dilatation) by their own
+        ``normal_product``."""
+        rest, factored = [], []
         for g, d, w in terms:
+            if g.factored:
+                factored.append(g.normal_product(d, w, self.free_index))
+                continue
             w = np.asarray(to_numpy(w), dtype=np.float64)
             keep = np.ones(g.shape[0], dtype=bool)
             keep[pair_rows(g, w)] = False
@@ -183,6 +188,8 @@ class Assembly:
             y = K_b(x)
             if C is not None:
                 y += CT_x(W.reshape(-1, *([1] * (x.ndim - 1))) * C_x(x))
+            for normal in factored:
+                y += normal(x) if x.ndim == 1 else np.stack([normal(c) for c in x.T], axis=1)
             return y
 
         return matvec
@@ -196,12 +203,12 @@ class Assembly:
         nodes = self.n // b
         pi, pj, pw = [], [], []
         for g, d, w in terms:
-            ind, ptr = g.block_parts()
             two = g.two_block_rows
             if rows is not None and g in rows:
                 two = two[np.asarray(rows[g], dtype=bool)[two]]
             if len(two) == 0:
                 continue
+            ind, ptr = g.block_parts()
             blocks = g.ordered(np.asarray(d, dtype=np.float64)).reshape(-1, b)
             strength = 0.5 * (blocks[ptr[two]] ** 2 + blocks[ptr[two] + 1] ** 2).sum(axis=1) / b
             weight = np.maximum(np.asarray(w, dtype=np.float64)[two], 0.0) * strength

@@ -66,10 +66,7 @@ class Material(ABC):
         self.unit = torch.as_tensor(bonds.xi / bonds.length[:, None])
         self.i, self.j = torch.as_tensor(bonds.i), torch.as_tensor(bonds.j)
         # B: bond extensions e_b = n . (u_j - u_i); entries (b, d*i+a) = -n_a, (b, d*j+a) = n_a
-        a = np.arange(d)
-        rows = np.repeat(np.arange(bonds.n), 2 * d)
-        cols = np.concatenate([d * bonds.i[:, None] + a, d * bonds.j[:, None] + a], axis=1).reshape(-1)
-        self.extension_gram = Gram(rows, cols, bonds.n, d * particles.n)
+        self.extension_gram = Gram.of_blocks(np.stack([bonds.i, bonds.j], axis=1), d * particles.n, d)
         self.extension_data = torch.cat([-self.unit, self.unit], dim=1).reshape(-1)
 
     def grams(self) -> list[Gram]:

@@ -83,3 +83,21 @@ def test_internal_force_matches_assembled_matrix():
     K = reference_matrix(terms)
     np.testing.assert_allclose(internal_force(terms, u).numpy(), K @ u.numpy(), rtol=1e-12,
                                atol=1e-12 * abs(K).max())
+
+
+def test_a_gram_of_blocks_is_the_gram_of_its_entries():
+    """``Gram.of_blocks`` gives the constructor's Gram (rows, columns, row pointers, block,
+    order and products) for rows with increasing nodes, and falls back to it otherwise."""
+    rng = np.random.default_rng(3)
+    for b in (2, 3):
+        nodes = np.sort(np.array([rng.choice(30, 2, replace=False) for _ in range(50)]), axis=1)
+        for picks in (nodes, nodes[:, ::-1]):
+            g = Gram.of_blocks(picks, b * 30, b)
+            ref = Gram(np.repeat(np.arange(50), 2 * b), (b * picks[:, :, None] + np.arange(b)).reshape(-1), 50, b * 30)
+            assert g.block == ref.block == b
+            for name in ("rows", "cols", "indptr"):
+                assert np.array_equal(getattr(g, name), getattr(ref, name))
+            assert (g.order is None) == (ref.order is None) and (g.order is None or np.array_equal(g.order, ref.order))
+            data = torch.as_tensor(rng.standard_normal(100 * b))
+            x = torch.as_tensor(rng.standard_normal(b * 30))
+            assert torch.equal(g.apply(data, x), ref.apply(data, x))

@@ -70,30 +70,6 @@ def test_lps_energy_density_matches_classical(lattice, plane):
     np.testing.assert_allclose(W(eps), classical_energy_density(eps, plane), rtol=0.05)
 
 
-def test_family_ends_in_row_major_order_without_a_sort():
-    """The dilatation operator's family ends come out in (owner, node) order with their end
-    ids (bond b as (i, j): b, as (j, i): nb + b, self: 2 nb + k), as a lexsort gives, for bonds
-    in any order; a repeated bond is refused."""
-    from bayespd.materials.lps import _family_ends
-    rng = np.random.default_rng(0)
-    n, pairs = 40, set()
-    while len(pairs) < 150:
-        a, b = rng.integers(0, n, 2)
-        if a != b and (b, a) not in pairs:
-            pairs.add((a, b))
-    i, j = np.array(sorted(pairs)).T
-    shuffle = rng.permutation(len(i))
-    i, j = i[shuffle], j[shuffle]
-    owner = np.concatenate([i, j, np.arange(n)])
-    node = np.concatenate([j, i, np.arange(n)])
-    expect = np.lexsort((node, owner))
-    o, nd, order = _family_ends(i, j, n)
-    assert np.array_equal(order.numpy(), expect)
-    assert np.array_equal(o, owner[expect]) and np.array_equal(nd, node[expect])
-    with pytest.raises(ValueError, match="distinct pairs"):
-        _family_ends(np.append(i, j[0]), np.append(j, i[0]), n)
-
-
 def test_the_kept_family_gives_the_fresh_terms_and_gradients():
     """w, m and the dilatation vectors are kept per horizon while it needs no gradient: a second
     ``terms`` at the same horizon reuses them (the same tensors) and gives the K, G gradients
