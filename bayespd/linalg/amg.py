@@ -224,8 +224,7 @@ def smoothed_aggregation(K: sp.csr_matrix, modes: np.ndarray, max_coarse: int = 
     (coarsening while a level has more than ``max_coarse`` nodes, a coarse node being the
     len(modes) dofs of one aggregate, aggregated whole; strength theta = 0, i.e. A's own pattern; standard aggregation; tentative prolongator T
     fitted to ``modes``; one Jacobi step P = T - omega / rho(D^-1 A) D^-1 A T), the products
-    in CSR (pyamg's 1 x 1-block BSR products took half its set-up; scipy's, on two threads
-    where numba is installed: ``RowRuns.times``) and rho by a seeded Lanczos
+    in CSR (pyamg's 1 x 1-block BSR products took half its set-up) and rho by a seeded Lanczos
     on D^-1/2 A D^-1/2 (same spectrum, symmetric), estimated in a second thread while the
     aggregates, T and A T are made. ``aggregates``: the finest level's, as (dofs, aggregates)
     CSR with one 1 per row (``cell_aggregates``) instead of pyamg's, or a function of nothing
@@ -249,14 +248,13 @@ def smoothed_aggregation(K: sp.csr_matrix, modes: np.ndarray, max_coarse: int = 
                 aggregates, _ = pyamg.aggregation.standard_aggregation(_node_graph(A, B.shape[1] if levels else 1))
             T, B = pyamg.aggregation.fit_candidates(aggregates, B)
             T = T.tocsr()
-            times = RowRuns(A).times if row_runs.usable() else A.__matmul__  # scipy's product, on two threads
-            AT = times(T)
+            AT = A @ T
             AT.data *= np.repeat(d_inv * (omega / rho.result()), np.diff(AT.indptr))  # D^-1 A T, rows scaled in place
             P = (T - AT).tocsr()
             del AT, T
             R = P.T.tocsr()
             levels.append((A, P, R))
-            A = (RowRuns(R).times(times(P)) if row_runs.usable() else R @ (A @ P)).tocsr()
+            A = (R @ (A @ P)).tocsr()
     return levels, A
 
 

@@ -116,27 +116,6 @@ class RowRuns:
             return np.stack([self.product(np.ascontiguousarray(c)) for c in x.T], axis=1)
         return self._each_run(_product, x)
 
-    def times(self, B: sp.csr_matrix) -> sp.csr_matrix:
-        """A @ B for a CSR B by scipy's algorithm (Gustavson's, its order of entries, exact zeros
-        dropped): scipy's product to the bit, its two passes (each row's columns counted, then
-        summed) on two threads, each run's rows written to their place in one output."""
-        B = sp.csr_matrix(B)
-        small = np.uint32 if B.indices.dtype == np.int32 else np.uint64
-        inputs = (self.indptr, self.indices, self.A.data, B.indptr.view(small), B.indices.view(small), B.data)
-        threads = torch.get_num_threads() if len(self.runs) > 1 else 1
-        count = np.concatenate(bond_loops.claimed(
-            lambda t: _count(*inputs, B.shape[1], *map(np.uint64, self.runs[t])), len(self.runs), threads))
-        indptr = np.zeros(len(count) + 1, dtype=np.int64)
-        np.cumsum(count, out=indptr[1:])
-        index = np.int32 if max(indptr[-1], B.shape[1]) < 2**31 - 1 else np.int64
-        indices, data = np.empty(indptr[-1], dtype=index), np.empty(indptr[-1])
-        kept = bond_loops.claimed(lambda t: _sum(*inputs, B.shape[1], *map(np.uint64, self.runs[t]), indptr,
-                                                 indices, data), len(self.runs), threads)
-        C = sp.csr_matrix((data, indices, indptr.astype(index)), shape=(self.A.shape[0], B.shape[1]))
-        if sum(kept) < indptr[-1]:  # products that summed to exactly 0: dropped, as scipy does
-            C.eliminate_zeros()
-        return C
-
     def pre(self, b: np.ndarray) -> np.ndarray:
         """M^-1 b: a forward sweep from x = 0."""
         return self._each_run(_forward_from_zero, self.diagonal, self.pivot, b)
@@ -212,54 +191,6 @@ if numba is not None:
             for k in range(indptr[i], indptr[i + 1]):
                 acc -= data[k] * x[indices[k]]
             out[r] = acc
-
-    @bond_loops.cached_kernel
-    def _count(indptr, indices, data, B_ptr, B_ind, B_data, columns, lo, hi):  # pragma: no cover - compiled
-        """The number of columns of each row in [lo, hi) of A @ B."""
-        marker = np.full(columns, -1, dtype=np.int64)
-        out = np.zeros(hi - lo, dtype=np.int64)
-        for i in range(lo, hi):
-            for k in range(indptr[i], indptr[i + 1]):
-                for kk in range(B_ptr[indices[k]], B_ptr[indices[k] + 1]):
-                    if marker[B_ind[kk]] != i:
-                        marker[B_ind[kk]] = i
-                        out[i - lo] += 1
-        return out
-
-    @bond_loops.cached_kernel
-    def _sum(indptr, indices, data, B_ptr, B_ind, B_data, columns, lo, hi, out_ptr, out_ind, out_data):  # pragma: no cover - compiled
-        """Rows [lo, hi) of A @ B into their places (``out_ptr``) by scipy's csr_matmat: the
-        columns linked in first-touch order, listed from the last; a sum of exactly 0 leaves a
-        0 at the row's end. Returns the entries kept."""
-        nxt = np.full(columns, -1, dtype=np.int64)
-        sums = np.zeros(columns)
-        kept = 0
-        for i in range(lo, hi):
-            head, length = -2, 0
-            for k in range(indptr[i], indptr[i + 1]):
-                v = data[k]
-                for kk in range(B_ptr[indices[k]], B_ptr[indices[k] + 1]):
-                    c = B_ind[kk]
-                    sums[c] += v * B_data[kk]
-                    if nxt[c] == -1:
-                        nxt[c] = head
-                        head = c
-                        length += 1
-            n = out_ptr[i]
-            for _ in range(length):
-                if sums[head] != 0:
-                    out_ind[n] = head
-                    out_data[n] = sums[head]
-                    n += 1
-                last = head
-                head = nxt[head]
-                nxt[last] = -1
-                sums[last] = 0.0
-            kept += n - out_ptr[i]
-            for k in range(n, out_ptr[i + 1]):
-                out_ind[k] = 0
-                out_data[k] = 0.0
-        return kept
 
     @bond_loops.fast_kernel
     def _product(indptr, indices, data, x, lo, hi, out):  # pragma: no cover - compiled

@@ -182,26 +182,3 @@ def test_without_the_compiled_loops_the_cycle_is_pyamgs(bond_operator, monkeypat
     monkeypatch.setattr(bond_loops, "ENABLED", False)
     p, asm, num, A = bond_operator
     assert amg_preconditioner(num, asm.free_index, p.x, pair=A).smoothers is None
-
-
-def test_sparse_product_is_scipys_to_the_bit():
-    """``RowRuns.times``: scipy's A @ B (indices, order, values) on one thread or two, with
-    products that cancel to exactly 0 dropped as scipy drops them."""
-    rng = np.random.default_rng(4)
-    A = sp.random(1200, 300, density=0.02, random_state=5, format="csr")
-    B = sp.random(300, 500, density=0.03, random_state=6, format="csr")
-    A.data = rng.integers(-3, 4, A.nnz).astype(float)  # small integers: some sums are exactly 0
-    B.data = rng.integers(-3, 4, B.nnz).astype(float)
-    ref = A @ B
-    assert ref.nnz < (abs(A) @ abs(B)).nnz  # the case of dropped zeros is exercised
-    before = torch.get_num_threads()
-    try:
-        for threads in (1, 2):
-            torch.set_num_threads(threads)
-            runs = RowRuns(A)
-            assert len(runs.runs) == 4
-            got = runs.times(B)
-            assert np.array_equal(got.indptr, ref.indptr) and np.array_equal(got.indices, ref.indices)
-            assert np.array_equal(got.data, ref.data)
-    finally:
-        torch.set_num_threads(before)
