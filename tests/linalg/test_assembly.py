@@ -87,7 +87,8 @@ def test_internal_force_matches_assembled_matrix():
 
 def test_a_gram_of_blocks_is_the_gram_of_its_entries():
     """``Gram.of_blocks`` gives the constructor's Gram (rows, columns, row pointers, block,
-    order and products) for rows with increasing nodes, and falls back to it otherwise."""
+    order; products to rounding: it gathers whole nodes) for rows with increasing nodes, and
+    falls back to it otherwise."""
     rng = np.random.default_rng(3)
     for b in (2, 3):
         nodes = np.sort(np.array([rng.choice(30, 2, replace=False) for _ in range(50)]), axis=1)
@@ -99,5 +100,6 @@ def test_a_gram_of_blocks_is_the_gram_of_its_entries():
                 assert np.array_equal(getattr(g, name), getattr(ref, name))
             assert (g.order is None) == (ref.order is None) and (g.order is None or np.array_equal(g.order, ref.order))
             data = torch.as_tensor(rng.standard_normal(100 * b))
-            x = torch.as_tensor(rng.standard_normal(b * 30))
-            assert torch.equal(g.apply(data, x), ref.apply(data, x))
+            x, y = torch.as_tensor(rng.standard_normal(b * 30)), torch.as_tensor(rng.standard_normal(50))
+            torch.testing.assert_close(g.apply(data, x), ref.apply(data, x), rtol=1e-14, atol=1e-14)
+            torch.testing.assert_close(g.apply_transpose(data, y), ref.apply_transpose(data, y), rtol=1e-14, atol=1e-14)
