@@ -123,7 +123,7 @@ class Assembly:
         """x -> K_ff x matrix-free (numpy, x of shape (n_free,) or (n_free, k)).
 
         The operators are stacked into one CSR matrix C (rows: bonds, then particles, ...)
-        with weights W, K = C^T W C, split into ``threads`` row blocks of equal size that are
+        with weights W, K = C^T W C (plus the factored terms, ``_factored``), split into ``threads`` row blocks of equal size that are
         applied in parallel (scipy's sparse products release the GIL; default: the settings'
         ``matvec_threads``, None there meaning all cores). ``pair``: K_b of these terms
         (``amg.pair_operator``, assembled for the AMG anyway); on one thread the product is
@@ -132,6 +132,8 @@ class Assembly:
         threads = max(1, int(threads or current_settings().matvec_threads or os.cpu_count() or 1))
         if pair is not None and threads == 1:
             return self._split_operator(terms, pair)
+        factored = self._factored(terms)
+        terms = [t for t in terms if not t[0].factored]
         C = sp.vstack([g.operator(to_numpy(d)) for g, d, _ in terms], format="csr")
         W = np.concatenate([np.asarray(to_numpy(w), dtype=np.float64) for _, _, w in terms])
         cuts = np.searchsorted(C.indptr, np.linspace(0, C.nnz, threads + 1)[1:-1])
@@ -153,21 +155,31 @@ class Assembly:
                 y = part(*parts[0], full)
                 for f in futures:
                     y += f.result()
-            return y[idx]
+            return factored(x, y[idx])
 
         return matvec
+
+    def _factored(self, terms):
+        """(x, y) -> y + sum A^T (w A x) over the factored terms (``BondSums``: the LPS
+        dilatation), each by its own ``normal_product`` on the free dofs."""
+        products = [g.normal_product(d, w, self.free_index) for g, d, w in terms if g.factored]
+
+        def add(x, y):
+            for normal in products:
+                y += normal(x) if x.ndim == 1 else np.stack([normal(c) for c in x.T], axis=1)
+            return y
+
+        return add
 
     def _split_operator(self, terms, pair: sp.csr_matrix):
         """x -> K_b x + C_r^T (W_r (C_r x)) + sum A^T (w A x): K_b = ``pair`` (the
         ``amg.pair_rows`` of every term), C_r the remaining rows of the Grams (multi-particle
         rows, negative weights) on the free columns, its transpose stored as CSR (a gather, not
         a scatter), each product in runs of rows on two threads where numba is installed
-        (``row_runs``); the factored terms (``BondSums``: the LPS dilatation) by their own
-        ``normal_product``."""
-        rest, factored = [], []
+        (``row_runs``); the factored terms by ``_factored``."""
+        rest, factored = [], self._factored(terms)
         for g, d, w in terms:
             if g.factored:
-                factored.append(g.normal_product(d, w, self.free_index))
                 continue
             w = np.asarray(to_numpy(w), dtype=np.float64)
             keep = np.ones(g.shape[0], dtype=bool)
@@ -188,9 +200,7 @@ class Assembly:
             y = K_b(x)
             if C is not None:
                 y += CT_x(W.reshape(-1, *([1] * (x.ndim - 1))) * C_x(x))
-            for normal in factored:
-                y += normal(x) if x.ndim == 1 else np.stack([normal(c) for c in x.T], axis=1)
-            return y
+            return factored(x, y)
 
         return matvec
 
