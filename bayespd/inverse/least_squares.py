@@ -366,9 +366,11 @@ def _minimise(f, z0, lo, hi, method, gtol, ftol, maxiter, maxfun, stall):
                                    "the data are fitted exactly")
     elif stop is not None:
         converged, reason = stop.converged, stop.reason
-    elif iterations < maxiter and (("REDUCTION" in message and "FACTR" in message) or "precision loss" in message):
+    elif iterations < maxiter and (("REDUCTION" in message and "FACTR" in message) or "precision loss" in message
+                                   or (method == "Newton-CG" and "terminated successfully" in message)):
         converged = False  # scipy's own round-off stops: L-BFGS-B's test with ftol = 0 (an
-        # iteration left J where it was) or a line search lost in round-off (Newton-CG)
+        # iteration left J where it was), a line search lost in round-off or steps below xtol
+        # = 1e-14 relative (Newton-CG)
         reason = (f"the optimiser stopped at J's round-off floor ({message}): projected gradient "
                   f"{pg:.3g} > gtol={gtol:g}; raise gtol or ftol")
     else:
