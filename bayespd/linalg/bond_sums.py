@@ -6,10 +6,10 @@ B is a ``Gram`` whose every row touches two particles (p_r, q_r) (blocks a_r on 
 on q_r's), its data fixed; S has two entries per row r of B, s_0r at particle p_r and s_1r at
 q_r, the data given per call as a (2, R) array. Its products cost O(rows of B), and a stiffness
 term A^T diag(w) A is applied as B^T (S^T (w S (B x))) without forming A: at 160k particles,
-m = 2, A as a ``Gram`` has 6.7 M entries against B's 6.4 M, which its construction, its data and
-a matrix-free product each paid for anew. ``explicit`` is A as a Gram of one row per particle
-(its family: the particle itself and every row's other particle), with ``explicit_data``, for
-what needs A's entries: assembly on a pattern, a direct factorisation, its CSR.
+m = 2, A as a ``Gram`` has 6.7 M entries (B 6.4 M), whose index arrays, data and products came on
+top of B's. ``explicit`` is A as a Gram of one row per particle (its family: the particle itself
+and every row's other particle), with ``explicit_data``, for what needs A's entries: assembly
+on a pattern, a direct factorisation, its CSR.
 """
 from __future__ import annotations
 
@@ -63,8 +63,8 @@ class BondSums:
         w = np.broadcast_to(w, (self.shape[0],))
         n, b = self.shape[0], self.block
         compiled = bond_loops.usable()
-        ends = (self.p, self.q)
         if compiled:
+            ends = (self.p, self.q)
             blocks = (self.p.view(np.uint64), self.q.view(np.uint64), *self._contiguous_blocks)
         else:
             B = self.bonds.operator(to_numpy(self.bond_data))
