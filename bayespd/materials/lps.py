@@ -11,10 +11,9 @@ so K = D^T diag(V (kappa - c_d G / d^2)) D + B^T diag(k_b) B (B maps u to bond e
 D = S B to dilatations, S summing each particle's bonds: ``linalg.bond_sums``) is the Hessian
 of sum_i V_i W_i: symmetric even when the moduli vary from particle to particle (Turner 2015
 eq 8). kappa is the in-plane bulk modulus: 9KG/(3K+4G) in plane stress, K + G/3 in plane
-strain, K in 3D. This is the
-2D split of Le et al. (2014) and equals Delorme 2018's eqs 18-19 (which use the 3D split x theta/3
-in 2D: expanding eq 45 with eq 41 gives the same coefficient 2(K + G/3)/q of theta x in plane
-strain). Turner 2015 prints k + mu/9 for that coefficient; the calibration above gives k + mu/3.
+strain, K in 3D. This is the 2D split of Le et al. (2014) and equals Delorme 2018's eqs
+18-19 (which use the 3D split x theta/3 in 2D: expanding eq 45 with eq 41 gives the same
+coefficient 2(K + G/3)/q of theta x in plane strain). Turner 2015 prints k + mu/9 for that coefficient; the calibration above gives k + mu/3.
 Every bond carries the weight omega(|xi|, delta) * beta(delta); LPS needs no recalibration
 for omega: m absorbs it.
 
