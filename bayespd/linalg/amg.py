@@ -22,6 +22,7 @@ pyamg's set-up 10x and each cycle 4x slower.
 """
 from __future__ import annotations
 
+import copy
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -75,16 +76,13 @@ def pair_rows(g, w) -> np.ndarray:
     return two[np.asarray(w)[two] >= 0]
 
 
-def pair_operator(terms, free_index: np.ndarray) -> sp.csr_matrix:
+def pair_operator(terms, free_index: np.ndarray, pattern=None) -> sp.csr_matrix:
     """K_b on the free dofs: the ``pair_rows`` of every (gram, data, w) term (sorted indices);
-    by compiled loops where numba is installed (``pair_loops``), else each A_t restricted to
-    those rows and the free columns before its product."""
+    by compiled loops where numba is installed (``pair_loops``; on ``pattern``, from
+    ``pair_pattern``, when given), else each A_t restricted to those rows and the free
+    columns before its product."""
     if row_runs.usable():
-        chosen = [(g, to_numpy(d), to_numpy(w)) for g, d, w in terms]
-        chosen = [(g, d, w, rows) for g, d, w in chosen if len(rows := pair_rows(g, w))]
-        if not chosen:
-            raise ValueError("no two-particle rows (bonds) to build the AMG preconditioner from")
-        return pair_loops.pair_operator(chosen, np.asarray(free_index), terms[0][0].shape[1])
+        return pair_loops.pair_operator(_pair_terms(terms), np.asarray(free_index), terms[0][0].shape[1], pattern)
     K = None
     for g, d, w in terms:
         two = pair_rows(g, w)
@@ -103,6 +101,23 @@ def pair_operator(terms, free_index: np.ndarray) -> sp.csr_matrix:
     return K
 
 
+def pair_pattern(terms, free_index: np.ndarray):
+    """K_b's pattern for ``terms`` (``pair_loops.PairPattern``), to assemble K_b at other
+    weights of the same rows; None where numba is not installed."""
+    if not row_runs.usable():
+        return None
+    return pair_loops.PairPattern(_pair_terms(terms), np.asarray(free_index), terms[0][0].shape[1])
+
+
+def _pair_terms(terms) -> list:
+    """[(gram, data, w, pair rows)] of the terms that have pair rows (numpy)."""
+    chosen = [(g, to_numpy(d), to_numpy(w)) for g, d, w in terms]
+    chosen = [(g, d, w, rows) for g, d, w in chosen if len(rows := pair_rows(g, w))]
+    if not chosen:
+        raise ValueError("no two-particle rows (bonds) to build the AMG preconditioner from")
+    return chosen
+
+
 class VCycle:
     """r -> M^-1 r, one symmetric V-cycle of a hierarchy (``smoothed_aggregation``), for r of
     shape (n,) or (n, k); ``hybrid``: the two-thread l1 hybrid smoother where numba is
@@ -118,6 +133,22 @@ class VCycle:
         dense[lost, lost] = 1.0
         with one_blas_thread():
             self.coarse = sla.cho_factor(dense)
+
+    def with_finest(self, A: sp.csr_matrix) -> "VCycle | None":
+        """This hierarchy with its finest level smoothing on A, a matrix of the same size (K_b
+        at new weights), P, R and the coarser levels kept; None when the hierarchy has no
+        level above its coarsest (a dense solve of the old matrix). Still a symmetric
+        positive-definite preconditioner: the smoother converges for any SPD A (l1 pivots,
+        or pyamg's symmetric sweep) and the coarse correction is SPD; weaker the further A is
+        from the matrix the hierarchy was built on."""
+        if not self.levels:
+            return None
+        new = copy.copy(self)
+        _, P, R = self.levels[0]
+        new.levels = [(A, P, R)] + self.levels[1:]
+        if self.smoothers is not None:
+            new.smoothers = [(RowRuns.smoother(A), *self.smoothers[0][1:])] + self.smoothers[1:]
+        return new
 
     def __call__(self, r: np.ndarray) -> np.ndarray:
         B = np.ascontiguousarray((r[:, None] if r.ndim == 1 else r).T)  # columns as rows

@@ -25,30 +25,46 @@ import scipy.sparse as sp
 from bayespd.bond_loops import numba
 
 
-def pair_operator(terms, free_index: np.ndarray, n_dofs: int) -> sp.csr_matrix:
+class PairPattern:
+    """K_b's pattern on the free dofs for the two-particle ``rows`` of each term's gram (the
+    particles' neighbour lists, the row layout and the column indices before exact zeros are
+    dropped): what depends on the pairs alone, built once and kept while only the weights
+    change (``Assembly.amg``)."""
+
+    def __init__(self, terms, free_index: np.ndarray, n_dofs: int):
+        self.block = terms[0][0].block
+        self.pairs = [_pair_rows(g, rows) for g, _, _, rows in terms]
+        nodes = n_dofs // self.block
+        self.neighbour_ptr, self.neighbours = _neighbours(np.concatenate([p for p, _ in self.pairs]),
+                                                          np.concatenate([q for _, q in self.pairs]), nodes)
+        self.rank = np.full(n_dofs, -1, dtype=np.int64)
+        self.rank[free_index] = np.arange(len(free_index))
+        self.size = len(free_index)
+        self.indptr, self.offsets = _free_rows(self.neighbour_ptr, self.neighbours, self.rank, self.block)
+        self.index = np.int32 if self.indptr[-1] < 2**31 - 1 else np.int64
+        self.indices = np.empty(self.indptr[-1], dtype=self.index)
+        _free_columns(self.neighbour_ptr, self.neighbours, self.rank, self.block, self.indptr, self.indices)
+
+    def assemble(self, terms) -> sp.csr_matrix:
+        """K_b of ``terms`` (the rows this pattern was built for, any weights): one pass over
+        the rows writing each one's four blocks, then the exact zeros dropped."""
+        data = np.zeros(len(self.indices))
+        for (g, d, w, rows), (p, q) in zip(terms, self.pairs):
+            _, ptr = g.block_parts()
+            values = g.ordered(np.asarray(d, dtype=np.float64)).reshape(-1, self.block)
+            _scatter(p, q, values, ptr[rows], np.asarray(w, dtype=np.float64)[rows], self.neighbour_ptr,
+                     self.neighbours, self.offsets, self.rank, self.indptr, data)
+        indptr, indices, data = _without_zeros(self.indptr, self.indices.copy(), data)
+        K = sp.csr_matrix((data, indices, indptr.astype(self.index)), shape=(self.size,) * 2)
+        K.has_sorted_indices = True
+        return K
+
+
+def pair_operator(terms, free_index: np.ndarray, n_dofs: int, pattern: PairPattern | None = None) -> sp.csr_matrix:
     """K_b on the free dofs (``amg.pair_operator``'s contract) from ``terms`` [(gram, data, w,
-    rows)]: the rows of each gram's operator that enter K_b (two particles each)."""
-    block = terms[0][0].block
-    pairs = [_pair_rows(g, rows) for g, _, _, rows in terms]
-    nodes = n_dofs // block
-    neighbour_ptr, neighbours = _neighbours(np.concatenate([p for p, _ in pairs]),
-                                            np.concatenate([q for _, q in pairs]), nodes)
-    rank = np.full(n_dofs, -1, dtype=np.int64)
-    rank[free_index] = np.arange(len(free_index))
-    indptr, offsets = _free_rows(neighbour_ptr, neighbours, rank, block)
-    small = np.int32 if indptr[-1] < 2**31 - 1 else np.int64
-    indices = np.empty(indptr[-1], dtype=small)
-    _free_columns(neighbour_ptr, neighbours, rank, block, indptr, indices)
-    data = np.zeros(len(indices))
-    for (g, d, w, rows), (p, q) in zip(terms, pairs):
-        _, ptr = g.block_parts()
-        values = g.ordered(np.asarray(d, dtype=np.float64)).reshape(-1, block)
-        _scatter(p, q, values, ptr[rows], np.asarray(w, dtype=np.float64)[rows], neighbour_ptr, neighbours,
-                 offsets, rank, indptr, data)
-    indptr, indices, data = _without_zeros(indptr, indices, data)
-    K = sp.csr_matrix((data, indices, indptr.astype(small)), shape=(len(free_index),) * 2)
-    K.has_sorted_indices = True
-    return K
+    rows)]: the rows of each gram's operator that enter K_b (two particles each), on
+    ``pattern`` when given (built for these rows), else on a new one."""
+    return (pattern or PairPattern(terms, free_index, n_dofs)).assemble(terms)
 
 
 def _pair_rows(g, rows) -> tuple[np.ndarray, np.ndarray]:

@@ -53,8 +53,9 @@ def usable() -> bool:
 
 def warm_up() -> None:
     """Load the compiled loops in a background thread, once per process: numba's first call in
-    a process costs ~0.25 s (its compiler's set-up, before the cached code loads), which the
-    AMG set-up that calls this hides on a free core. A fork waits for it (a child must not
+    a process costs ~0.25 s (its compiler's set-up, before the cached code loads), which a
+    stiffness ``Assembly`` (made before its terms) and the AMG set-up that call this hide on a
+    free core. A fork waits for it (a child must not
     inherit numba's compiler lock held by a thread it does not have)."""
     if usable() and not _WARM:
         _WARM.append(threading.Thread(target=_load, name="bayespd-row-runs", daemon=True))

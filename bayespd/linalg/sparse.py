@@ -246,15 +246,20 @@ class PCGFactor(Factor):
 
     Converged when ||b - K x|| <= rtol ||b|| for every column; otherwise ``ConvergenceError``.
     A non-positive curvature p^T K p <= 0 raises ``NotPositiveDefiniteError``.
-    ``iterations`` holds the iteration count of the last solve.
+    ``iterations`` holds the iteration count of the last solve; ``log``, a list, gets each
+    solve's (the caller's record of how well a kept preconditioner still serves).
+    ``renew`` = (limit, make): a solve that reaches ``limit`` iterations unconverged takes the
+    preconditioner ``make()`` from then on (once; CG restarts from its iterate), for a
+    preconditioner kept from another operator (``renewed`` says whether it happened).
     """
 
-    def __init__(self, matvec, precondition, n: int, rtol: float = 1e-10, maxiter: int | None = None):
-        self.matvec, self.precondition, self.n = matvec, precondition, n
+    def __init__(self, matvec, precondition, n: int, rtol: float = 1e-10, maxiter: int | None = None,
+                 log: list | None = None, renew: tuple | None = None):
+        self.matvec, self.precondition, self.n, self.log, self.renew = matvec, precondition, n, log, renew
         self.rtol, self.maxiter = rtol, maxiter or max(200, int(4 * np.sqrt(n)))
-        self.iterations, self.cholmod = 0, None  # ``solve`` is a method: no bound method stored
-        # on the instance, whose reference cycle kept K_b and the V-cycle alive until Python's
-        # rare full collection (fe_convergence: +300 MiB per 3D solve, benchmarks/README.md)
+        self.iterations, self.cholmod, self.renewed = 0, None, False  # ``solve`` is a method: no
+        # bound method stored on the instance, whose reference cycle kept K_b and the V-cycle
+        # alive until Python's rare full collection (fe_convergence: +300 MiB per 3D solve)
 
     def solve(self, b):
         b = np.asarray(b, dtype=np.float64)
@@ -269,11 +274,31 @@ class PCGFactor(Factor):
         if np.all(norm_b == 0):
             return x
         target = self.rtol * norm_b
-        r = b.copy()
+        r, done = b.copy(), 0
+        while True:
+            stop = self.maxiter if self.renew is None else min(self.maxiter, max(self.renew[0], done + 1))
+            done, res = self._iterate(x, r, target, done, stop)
+            if np.all(res <= target) or done >= self.maxiter:
+                break
+            self.precondition, self.renew, self.renewed = self.renew[1](), None, True
+        self.iterations = done
+        if self.log is not None:
+            self.log.append(done)
+        if np.all(res <= target):
+            return x
+        worst = float(np.max(res / norm_b))
+        raise ConvergenceError(
+            f"conjugate gradients did not converge: relative residual {worst:.2e} > rtol="
+            f"{self.rtol:g} after {self.maxiter} iterations; use the direct backend "
+            "(method='direct'), a stronger preconditioner, or raise maxiter")
+
+    def _iterate(self, x, r, target, done: int, stop: int):
+        """CG from the iterate x with residual r (both updated in place), counting from
+        ``done`` to at most ``stop`` iterations: (iterations, residual norms)."""
         z = self.precondition(r)
         p = z.copy()
         rz = _dot(r, z)
-        for it in range(1, self.maxiter + 1):
+        for it in range(done + 1, stop + 1):
             Kp = self.matvec(p)
             curvature = _dot(p, Kp)
             if np.any(curvature <= 0) or not np.all(np.isfinite(curvature)):
@@ -285,18 +310,12 @@ class PCGFactor(Factor):
             r -= alpha * Kp
             res = np.sqrt(_dot(r, r))
             if np.all(res <= target):
-                self.iterations = it
-                return x
+                return it, res
             z = self.precondition(r)
             rz_new = _dot(r, z)
             p = z + (rz_new / rz) * p
             rz = rz_new
-        self.iterations = self.maxiter
-        worst = float(np.max(res / norm_b))
-        raise ConvergenceError(
-            f"conjugate gradients did not converge: relative residual {worst:.2e} > rtol="
-            f"{self.rtol:g} after {self.maxiter} iterations; use the direct backend "
-            "(method='direct'), a stronger preconditioner, or raise maxiter")
+        return stop, res
 
 
 def splu_factor(A) -> Factor:

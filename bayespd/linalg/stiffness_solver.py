@@ -13,7 +13,7 @@ import scipy.sparse as sp
 import torch
 
 from bayespd.linalg import row_runs
-from bayespd.linalg.amg import amg_preconditioner, pair_operator, pair_rows
+from bayespd.linalg.amg import amg_preconditioner, pair_operator, pair_pattern, pair_rows
 from bayespd.linalg.assembly import Gram, numeric_values, to_numpy, union_pattern
 from bayespd.linalg.config import current_settings
 from bayespd.linalg.row_runs import RowRuns
@@ -51,8 +51,10 @@ class Assembly:
         if self.free.shape != (self.n,):
             raise ValueError(f"free must be a boolean mask of the {self.n} dofs")
         self.free_index = np.flatnonzero(self.free)
+        row_runs.warm_up()  # numba's start-up on a free core while the caller makes its terms
         self._given_pattern = pattern
         self._kept, self.amg_builds = None, 0  # the latest K_b and AMG hierarchy (``amg``)
+        self.reuse_hierarchy = True  # a kept hierarchy may serve new weights (``amg``)
 
     @cached_property
     def pattern(self) -> Pattern:
@@ -89,8 +91,10 @@ class Assembly:
                              "rigid-body modes: pass positions=particles.x")
         else:
             pair, precondition = self.amg(terms, positions)
+            kept = self._kept
+            renew = (kept.limit(), self._rebuild(kept, terms, positions)) if kept.base is not None else None
             return PCGFactor(self.operator(terms, pair=pair), precondition, len(self.free_index),
-                             rtol=rtol, maxiter=maxiter)
+                             rtol=rtol, maxiter=maxiter, log=kept.iterations, renew=renew)
         return PCGFactor(self.operator(terms), precondition, len(self.free_index),
                          rtol=rtol, maxiter=maxiter)
 
@@ -100,24 +104,54 @@ class Assembly:
         relative each: only moduli changed, e.g. a homogeneous shear modulus; LPS's bulk
         modulus is not in K_b), K_b is the kept one times c, not reassembled, and the kept
         hierarchy is reused divided by c: smoothed aggregation is scale-invariant
-        (V-cycle(c A) = V-cycle(A) / c). Otherwise (a new horizon, positions or pattern of
-        weights) both are built anew; ``amg_builds`` counts the builds."""
+        (V-cycle(c A) = V-cycle(A) / c). When only the weights changed otherwise (a new
+        horizon or a modulus field) and ``reuse_hierarchy`` is on, K_b is assembled anew and
+        the kept hierarchy smooths on it (``VCycle.with_finest``): at 40k particles, m = 3, a
+        hierarchy built at delta = 2h took 16-17 iterations for delta from 2h to 3h where a
+        fresh one took 16-20 (benchmarks/README.md, issue 31, seventh pass), and the set-up is
+        saved. Its solves may take ``REUSE_SLACK`` times the iterations of the first solve
+        after the build, plus one (``_KeptPair.limit``): a solve that reaches that builds the
+        hierarchy anew and goes on with it (``PCGFactor``'s renew; a modulus field 10x
+        steeper than the kept one's took 28 iterations against 13), and the reuse is then
+        switched off for this Assembly. Otherwise (new positions, operators or rows, no solve
+        yet) both are built anew; ``amg_builds`` counts the builds. K_b's pattern
+        (``amg.pair_pattern``) is kept with the hierarchy: a new K_b of the same rows only sums
+        its values."""
         positions = np.asarray(positions, dtype=np.float64)
-        kept = _KeptPair(terms, positions)
-        c = kept.scale(self._kept) if self._kept is not None else None
+        kept, previous = _KeptPair(terms, positions), self._kept
+        c = kept.scale(previous) if previous is not None else None
         if c is not None:
-            K, cycle = self._kept.K, self._kept.cycle
+            K, cycle = previous.K, previous.cycle
             if c == 1.0:
                 return K, cycle
             return (sp.csr_matrix((c * K.data, K.indices, K.indptr), shape=K.shape, copy=False),
                     lambda r: cycle(r) / c)
-        self._kept = None  # not kept alive beside the new one (peak memory)
+        self._kept = None
+        if previous is not None and not (self.reuse_hierarchy and previous.serves(kept)):
+            previous = None  # not kept alive beside the new one (peak memory)
         kept.positions = positions.copy()  # the caller's array may change in place
-        kept.K = pair_operator(terms, self.free_index)
-        kept.cycle = amg_preconditioner(terms, self.free_index, positions, pair=kept.K)
+        kept.pattern = previous.pattern if previous is not None else pair_pattern(terms, self.free_index)
+        kept.K = pair_operator(terms, self.free_index, kept.pattern)
+        kept.cycle = previous.cycle.with_finest(kept.K) if previous is not None else None
+        if kept.cycle is None:
+            kept.cycle = amg_preconditioner(terms, self.free_index, positions, pair=kept.K)
+            self.amg_builds += 1
+        else:
+            kept.base = previous.first_iterations()
         self._kept = kept
-        self.amg_builds += 1
         return kept.K, kept.cycle
+
+    def _rebuild(self, kept: "_KeptPair", terms, positions):
+        """make() for ``PCGFactor``'s renew: the hierarchy built for ``kept``'s K_b in place of
+        the reused one; the reuse is switched off (these operators move too far between calls)."""
+        def make():
+            kept.cycle = amg_preconditioner(terms, self.free_index, positions, pair=kept.K)
+            kept.base = None
+            self.amg_builds += 1
+            self.reuse_hierarchy = False
+            return kept.cycle
+
+        return make
 
     def operator(self, terms, threads: int | None = None, pair: sp.csr_matrix | None = None):
         """x -> K_ff x matrix-free (numpy, x of shape (n_free,) or (n_free, k)).
@@ -252,12 +286,18 @@ class Assembly:
         return precondition
 
 
+REUSE_SLACK = 1.25  # a kept hierarchy serves while its solves take at most this x its first's (+1)
+
+
 class _KeptPair:
     """What K_b was assembled from: the data and pair-row weights of the terms that have
-    pair rows, and the positions of the rigid-body modes; ``K`` and ``cycle`` once built."""
+    pair rows, and the positions of the rigid-body modes; ``K``, its ``pattern`` and ``cycle``,
+    ``iterations`` of the solves made with them, ``base``: those of the first solve after
+    the hierarchy's build, when it was built for an earlier K_b."""
 
     def __init__(self, terms, positions: np.ndarray):
-        self.positions, self.K, self.cycle = positions, None, None
+        self.positions, self.K, self.cycle, self.pattern = positions, None, None, None
+        self.iterations, self.base = [], None
         self.parts = []
         for g, d, w in terms:
             w = np.asarray(w, dtype=np.float64)
@@ -265,16 +305,34 @@ class _KeptPair:
             if len(rows):
                 self.parts.append((g, np.asarray(d), rows, w[rows]))
 
+    def same_structure(self, kept: "_KeptPair") -> bool:
+        """The same operators, data, rows and positions as ``kept`` (the weights may differ)."""
+        if len(self.parts) != len(kept.parts) or not self.parts or not np.array_equal(
+                self.positions, kept.positions):
+            return False
+        return all(g is g0 and (_same_buffer(d, d0) or np.array_equal(d, d0)) and np.array_equal(rows, rows0)
+                   for (g, d, rows, _), (g0, d0, rows0, _) in zip(self.parts, kept.parts))
+
+    def first_iterations(self) -> int | None:
+        """The iterations of the first solve after the hierarchy's build (None: none yet)."""
+        return self.base if self.base is not None else (self.iterations[0] if self.iterations else None)
+
+    def limit(self) -> int:
+        """The iterations a solve with a reused hierarchy may take: ``REUSE_SLACK`` x those of
+        the first solve after its build, plus one."""
+        return int(REUSE_SLACK * self.first_iterations()) + 1
+
+    def serves(self, new: "_KeptPair") -> bool:
+        """Whether this hierarchy may smooth on ``new``'s K_b: the same structure, a first solve
+        to measure it by, and no solve of this K_b beyond ``limit``."""
+        return (new.same_structure(self) and self.first_iterations() is not None
+                and max(self.iterations, default=0) <= self.limit())
+
     def scale(self, kept: "_KeptPair") -> float | None:
         """c > 0 with these weights = c x ``kept``'s (to 1e-13 relative each), the same
         operators, data, rows and positions; else None."""
-        if len(self.parts) != len(kept.parts) or not self.parts or not np.array_equal(
-                self.positions, kept.positions):
+        if not self.same_structure(kept):
             return None
-        for (g, d, rows, _), (g0, d0, rows0, _) in zip(self.parts, kept.parts):
-            if g is not g0 or not (_same_buffer(d, d0) or np.array_equal(d, d0)) \
-                    or not np.array_equal(rows, rows0):
-                return None
         w0 = kept.parts[0][3]
         k = int(np.argmax(np.abs(w0)))
         c = float(self.parts[0][3][k] / w0[k])

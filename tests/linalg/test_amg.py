@@ -3,6 +3,7 @@ space, a symmetric positive-definite V-cycle, and the PCG it preconditions again
 solve, in fewer iterations than the bond-graph Laplacian needs."""
 import numpy as np
 import pytest
+import torch
 
 import bayespd as bp
 from bayespd.linalg.amg import amg_preconditioner, pair_operator, rigid_body_modes
@@ -133,7 +134,9 @@ def test_a_dof_no_bond_reaches_keeps_the_hierarchy_finite():
 def test_the_hierarchy_is_reused_while_the_bond_operator_only_scales():
     """A new bulk modulus (not in K_b) or shear modulus (K_b scales by G'/G) reuses the AMG
     hierarchy: one set-up for three parameter values, the iterations of a fresh set-up, the
-    direct solution to 1e-8 relative; a new horizon (weights not proportional) builds anew."""
+    direct solution to 1e-8 relative. A new horizon (weights not proportional) keeps it too,
+    smoothing on the new K_b, within the reuse's iteration limit and to the direct solution;
+    new positions build anew."""
     p, bonds, mat, _ = lps_terms(nx=30, ny=12)
     asm = Assembly(mat.grams(), ~np.repeat(p.layer("left", 2.6), 2))
     rhs = np.random.default_rng(5).standard_normal(len(asm.free_index))
@@ -147,8 +150,39 @@ def test_the_hierarchy_is_reused_while_the_bond_operator_only_scales():
         assert x.iterations == fresh.iterations, (k, x.iterations, fresh.iterations)
         exact = asm.factorize(terms, "direct", backend="splu").solve(rhs)
         assert np.linalg.norm(u - exact) <= 1e-8 * np.linalg.norm(exact)
-    asm.factorize(mat.terms({"K": 3000.0, "G": 1500.0, "delta": 2.3}), "amg", positions=p.x)
+    terms = mat.terms({"K": 3000.0, "G": 1500.0, "delta": 2.3})
+    x = asm.factorize(terms, "amg", positions=p.x)
+    u = x.solve(rhs)
+    assert asm.amg_builds == 1 and not x.renewed and x.iterations <= asm._kept.limit()
+    exact = asm.factorize(terms, "direct", backend="splu").solve(rhs)
+    assert np.linalg.norm(u - exact) <= 1e-8 * np.linalg.norm(exact)
+    asm.factorize(terms, "amg", positions=p.x + 0.01)
     assert asm.amg_builds == 2
+
+
+def test_a_reused_hierarchy_that_no_longer_serves_is_built_anew_mid_solve():
+    """A shear-modulus field 1000x steeper than the kept hierarchy's K_b (the stale cycle alone
+    needs 118 iterations against 13): the solve reaches the reuse's limit, builds the
+    hierarchy for the new K_b, converges with it to the direct solution (1e-8), and the
+    Assembly reuses no hierarchy after that."""
+    p, bonds, mat, _ = lps_terms(nx=30, ny=12)
+    asm = Assembly(mat.grams(), ~np.repeat(p.layer("left", 2.6), 2))
+    rhs = np.random.default_rng(5).standard_normal(len(asm.free_index))
+    first = asm.factorize(mat.terms({"K": 3000.0, "G": 1500.0, "delta": 2.6}), "amg", positions=p.x)
+    first.solve(rhs)
+    G = torch.as_tensor(1500.0 * 1000.0 ** (p.x[:, 0] / p.x[:, 0].max()))
+    terms = mat.terms({"K": 2 * G, "G": G, "delta": 2.6})
+    x = asm.factorize(terms, "amg", positions=p.x)
+    u = x.solve(rhs)
+    limit = int(1.25 * first.iterations) + 1
+    assert x.renewed and asm.amg_builds == 2 and not asm.reuse_hierarchy
+    fresh = Assembly(mat.grams(), asm.free).factorize(terms, "amg", positions=p.x)
+    fresh.solve(rhs)
+    assert x.iterations <= limit + fresh.iterations + 1, (x.iterations, limit, fresh.iterations)
+    exact = asm.factorize(terms, "direct", backend="splu").solve(rhs)
+    assert np.linalg.norm(u - exact) <= 1e-8 * np.linalg.norm(exact)
+    asm.factorize(mat.terms({"K": 3000.0, "G": 1500.0, "delta": 2.3}), "amg", positions=p.x)
+    assert asm.amg_builds == 3
 
 
 @pytest.mark.parametrize("material, changed", [("lps", {"G": 2100.0}), ("lps", {"K": 4500.0}),

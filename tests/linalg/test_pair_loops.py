@@ -64,3 +64,24 @@ def test_no_bond_rows_is_refused():
     (g, d, w), = [(g, d.numpy(), w.numpy()) for g, d, w in mat.terms({"K": 3000.0, "delta": 1.5})]
     with pytest.raises(ValueError, match="no two-particle rows"):
         amg.pair_operator([(g, d, -np.ones_like(w))], np.arange(2 * p.n))
+
+
+def test_a_kept_pattern_gives_a_fresh_assembly_at_new_weights():
+    """K_b at a new horizon on the pattern kept from another horizon (``amg.pair_pattern``):
+    bit for bit the K_b assembled afresh (the same loops in the same order), the pattern's
+    own indices left untouched by the zeros a call drops."""
+    p = bp.grid_2d(14.0, 9.0, 1.0)
+    mat = bp.LPS(p, bp.find_bonds(p, 2.6), plane="stress")
+    free = np.flatnonzero(~np.repeat(p.layer("left", 1.0), 2))
+
+    def terms(delta):
+        return [(g, d.numpy(), w.numpy()) for g, d, w in mat.terms({"K": 3000.0, "G": 1500.0, "delta": delta})]
+
+    pattern = amg.pair_pattern(terms(2.6), free)
+    indices = pattern.indices.copy()
+    for delta in (2.6, 1.7):
+        K, fresh = pair_operator(terms(delta), free, pattern), pair_operator(terms(delta), free)
+        assert np.array_equal(K.indptr, fresh.indptr) and np.array_equal(K.indices, fresh.indices)
+        assert np.array_equal(K.data, fresh.data)
+        assert np.array_equal(pattern.indices, indices)
+    assert K.nnz < pair_operator(terms(2.6), free).nnz  # fewer nonzero bonds at 1.7: zeros dropped

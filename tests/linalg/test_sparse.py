@@ -68,6 +68,23 @@ def test_a_pcg_factor_is_freed_by_reference_counting():
         gc.enable()
 
 
+def test_pcg_renews_its_preconditioner_at_the_limit():
+    """With renew = (limit, make), a solve that reaches ``limit`` iterations unconverged goes on
+    from its iterate with ``make()`` (called once): with the exact inverse that is one more
+    iteration; the log gets the whole count, and a later solve starts with the new one."""
+    spd = grid_spd().tocsc()
+    exact = sparse.splu_factor(spd).solve
+    made = []
+    factor = sparse.PCGFactor(spd.__matmul__, lambda r: r, spd.shape[0], log=(log := []),
+                              renew=(3, lambda: made.append(1) or exact))
+    b = np.ones(spd.shape[0])
+    x = factor.solve(b)
+    assert np.linalg.norm(spd @ x - b) <= 1e-10 * np.linalg.norm(b)
+    assert factor.renewed and made == [1] and factor.iterations == 4 and log == [4]
+    factor.solve(2 * b)
+    assert made == [1] and log == [4, 1]
+
+
 def test_pattern_declares_its_node_blocks():
     """``blocks`` must describe the pattern it is given to (node count and block entries);
     a pickled pattern carries its blocks but not CHOLMOD's analysis."""
