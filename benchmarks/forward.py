@@ -25,7 +25,9 @@ gradients preconditioned by the Cholesky factor of the bond-graph Laplacian (all
 ``amg`` = the same PCG preconditioned by a smoothed-aggregation V-cycle on the bond operator
 with the rigid-body modes (``bayespd.linalg.amg``; "factorise" is the AMG set-up).
 ``--scene`` also times the differentiable ``Scene.solve`` (forward: set-up + one solve) and its
-gradient (the adjoint: one more solve with the same factor or preconditioner).
+gradient (the adjoint: one more solve with the same factor or preconditioner); with
+``--evaluations k``, k more of them on the same scene at horizons 4 %, 8 %, ... smaller (a
+calibration's evaluations: the AMG path keeps its hierarchy across them).
 """
 from __future__ import annotations
 
@@ -40,7 +42,8 @@ import time
 import numpy as np
 
 
-def run_one(n: int, m: float, material: str, solver: str, threads: int, scene: bool) -> dict:
+def run_one(n: int, m: float, material: str, solver: str, threads: int, scene: bool, evaluations: int = 0,
+            fresh: bool = False) -> dict:
     import torch
 
     import bayespd as bp
@@ -122,6 +125,16 @@ def run_one(n: int, m: float, material: str, solver: str, threads: int, scene: b
         t0, c0 = time.perf_counter(), time.process_time()
         us[:, 0].sum().backward()
         out["gradient_s"], out["gradient_cpu_s"] = time.perf_counter() - t0, time.process_time() - c0
+        if evaluations:  # a calibration's next evaluations: smaller horizons, the same scene
+            if fresh and sc._assembly is not None:
+                sc._assembly.reuse_hierarchy = False
+            t0 = time.perf_counter()
+            for k in range(1, evaluations + 1):
+                q = {name: torch.tensor(v.item() * (1 - 0.04 * k if name == "delta" else 1), requires_grad=True)
+                     for name, v in q.items()}
+                sc.solve(q)[:, 0].sum().backward()
+            out["evaluation_s"] = (time.perf_counter() - t0) / evaluations
+            out["amg_builds"] = sc._assembly.amg_builds if sc._assembly is not None else None
     out["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return out
 
@@ -135,6 +148,11 @@ def main():
                         choices=["cholmod", "splu", "pcg", "pcg-short", "amg"])
     parser.add_argument("--threads", type=int, default=2, help="torch and OpenBLAS threads")
     parser.add_argument("--scene", action="store_true", help="also time Scene.solve + gradient")
+    parser.add_argument("--evaluations", type=int, default=0, help="with --scene: this many more "
+                        "Scene.solve + gradient on the same scene at horizons 4, 8, ... %% smaller "
+                        "(a calibration's evaluations); their mean time is printed")
+    parser.add_argument("--fresh-hierarchy", action="store_true", help="with --evaluations: build "
+                        "the AMG hierarchy anew at each (Assembly.reuse_hierarchy = False)")
     parser.add_argument("--timeout", type=float, default=900, help="seconds per configuration")
     parser.add_argument("--repeat", type=int, default=1, help="runs per configuration; the "
                         "fastest (total) is printed (the machine is shared: load varies)")
@@ -146,7 +164,8 @@ def main():
     args = parser.parse_args()
     if args.one:
         n, m, material, solver = args.one
-        print(json.dumps(run_one(int(n), float(m), material, solver, args.threads, args.scene)))
+        print(json.dumps(run_one(int(n), float(m), material, solver, args.threads, args.scene, args.evaluations,
+                                 args.fresh_hierarchy)))
         return
     from bayespd.linalg import sparse
     solvers = [s for s in args.solvers if s != "cholmod" or sparse.cholmod is not None]
@@ -157,7 +176,8 @@ def main():
             for material in args.materials:
                 for s in solvers:
                     cmd = [sys.executable, __file__, "--one", str(n), str(m), material, s,
-                           "--threads", str(args.threads)] + (["--scene"] if args.scene else [])
+                           "--threads", str(args.threads), "--evaluations", str(args.evaluations)] + (
+                               ["--scene"] if args.scene else []) + (["--fresh-hierarchy"] if args.fresh_hierarchy else [])
                     runs = []
                     for _ in range(args.repeat):
                         if args.wait_load is not None:
@@ -184,6 +204,8 @@ def main():
                         extra = (f"  scene {r['scene_solve_s']:.2f} grad {r['gradient_s']:.2f} "
                                  f"(ratio {r['gradient_s'] / r['scene_solve_s']:.2f}, CPU "
                                  f"{r['gradient_cpu_s'] / r['scene_solve_cpu_s']:.2f})")
+                        if "evaluation_s" in r:
+                            extra += f"  next evaluations {r['evaluation_s']:.2f} each (AMG builds {r['amg_builds']})"
                     print(f"{r['particles']:>9} {m:>3g} {material:>4} {s:>9} {r.get('nnz', 0):>10} "
                           f"{r['setup_s']:>6.2f} {r['assemble_s']:>6.2f} {r['factorise_s']:>7.2f} "
                           f"{r['solve_s']:>6.2f} {r['total_s']:>7.2f} {r['total_cpu_s']:>6.2f} {r.get('iterations', ''):>4} "

@@ -109,8 +109,8 @@ class Assembly:
         the kept hierarchy smooths on it (``VCycle.with_finest``): at 40k particles, m = 3, a
         hierarchy built at delta = 2h took 16-17 iterations for delta from 2h to 3h where a
         fresh one took 16-20 (benchmarks/README.md, issue 31, seventh pass), and the set-up is
-        saved. Its solves may take ``REUSE_SLACK`` times the iterations of the first solve
-        after the build, plus one (``_KeptPair.limit``): a solve that reaches that builds the
+        saved. Its solves may take ``REUSE_SLACK`` times the iterations of the solves of the
+        K_b it was built for, plus one (``_KeptPair.limit``): a solve that reaches that builds the
         hierarchy anew and goes on with it (``PCGFactor``'s renew; a modulus field 10x
         steeper than the kept one's took 28 iterations against 13), and the reuse is then
         switched off for this Assembly. Otherwise (new positions, operators or rows, no solve
@@ -286,14 +286,14 @@ class Assembly:
         return precondition
 
 
-REUSE_SLACK = 1.25  # a kept hierarchy serves while its solves take at most this x its first's (+1)
+REUSE_SLACK = 1.25  # a kept hierarchy serves while a solve takes at most this x those it was built for (+1)
 
 
 class _KeptPair:
     """What K_b was assembled from: the data and pair-row weights of the terms that have
     pair rows, and the positions of the rigid-body modes; ``K``, its ``pattern`` and ``cycle``,
-    ``iterations`` of the solves made with them, ``base``: those of the first solve after
-    the hierarchy's build, when it was built for an earlier K_b."""
+    ``iterations`` of the solves made with them, ``base``: ``first_iterations`` of the K_b the
+    hierarchy was built for, when that was an earlier one."""
 
     def __init__(self, terms, positions: np.ndarray):
         self.positions, self.K, self.cycle, self.pattern = positions, None, None, None
@@ -314,12 +314,13 @@ class _KeptPair:
                    for (g, d, rows, _), (g0, d0, rows0, _) in zip(self.parts, kept.parts))
 
     def first_iterations(self) -> int | None:
-        """The iterations of the first solve after the hierarchy's build (None: none yet)."""
-        return self.base if self.base is not None else (self.iterations[0] if self.iterations else None)
+        """The most iterations a solve took with the K_b the hierarchy was built for (forward
+        and adjoint: their right-hand sides differ; None: none yet)."""
+        return self.base if self.base is not None else max(self.iterations, default=None)
 
     def limit(self) -> int:
-        """The iterations a solve with a reused hierarchy may take: ``REUSE_SLACK`` x those of
-        the first solve after its build, plus one."""
+        """The iterations a solve with a reused hierarchy may take: ``REUSE_SLACK`` x
+        ``first_iterations``, plus one."""
         return int(REUSE_SLACK * self.first_iterations()) + 1
 
     def serves(self, new: "_KeptPair") -> bool:
