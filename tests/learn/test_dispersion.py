@@ -74,10 +74,11 @@ def test_shells_by_wavenumber():
         shell_of(np.zeros((1, 2)), 1.0, (0.4, 0.2))
 
 
-def test_the_error_field_has_the_stated_law():
+@pytest.mark.parametrize("measurement", [0.0, 0.02])
+def test_the_error_field_has_the_stated_law(measurement):
     """Delta = L^T X L read back from a draw at the wave (1, 2) (X's columns: e_hat / f_hat of its
-    x and y loads there), with the common offset drawn from its prior, has entries N(0, s^2 + tau^2)
-    on the diagonal and N(0, (s^2 + tau^2) / 2) off it: over 400 draws each variance's chi-square statistic lies in its two-sided 99 % range
+    x and y loads there), with the common offset drawn from its prior and a fresh measurement error
+    of sd sigma_m, has entries N(0, s^2 + tau^2 + sigma_m^2) on the diagonal and half that off it: over 400 draws each variance's chi-square statistic lies in its two-sided 99 % range
     (a 1 % false rejection each; a variance off by 25 % is rejected with power above 0.99: the
     statistic's mean moves by 100 against its sd of 28)."""
     s, n, p = pd_sheet()
@@ -90,12 +91,13 @@ def test_the_error_field_has_the_stated_law():
     generator = torch.Generator().manual_seed(1)
     Delta = []
     for _ in range(draws):
-        e = error_field(S, f, torch.full((len(k_all),), sd), common_offset_prior(tau).sample(generator), n, generator)
+        e = error_field(S, f, torch.full((len(k_all),), sd), common_offset_prior(tau).sample(generator), n, generator,
+                        measurement=measurement)
         e_hat = torch.fft.fft2(e.reshape(2, n, n, 2), dim=(1, 2))[:, 1, 2]
         X = torch.stack([(e_hat[a] / f_hat[a, a]).real for a in (0, 1)], -1)
         Delta.append(L.T @ X @ L)
     Delta = torch.stack(Delta)
-    var = sd**2 + tau**2
+    var = sd**2 + tau**2 + measurement**2
     for values, v in ((Delta[:, 0, 0], var), (Delta[:, 1, 1], var), (Delta[:, 0, 1], var / 2)):
         chi2 = float((values**2).sum()) / v
         assert stats.chi2.ppf(0.005, draws) < chi2 < stats.chi2.ppf(0.995, draws)
