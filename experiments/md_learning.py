@@ -142,7 +142,7 @@ def phase_two(kernel, quick, out, surface: bool, diagnostics: bool = True):
     free = ~sc.fixed
     intact = int(np.flatnonzero(~np.isnan(sc.tip))[0])  # frames before the first MD bond breaks
     pre_crack = {}
-    for name, corrected in (("exact_kinematics_lps", False), ("free_surface_eq3_18", True))[: 2 if diagnostics else 0]:
+    for name, corrected in (("exact_kinematics_lps", False), ("free_surface_eq3_18", True)) if diagnostics else ():
         t = time.perf_counter()
         run = scene(z, fracture, kernel, H, pulled=True, surface=corrected).run(None, intact)
         pre_crack[name] = {"displacement_rel_error": relative_error(run.u, sc.u[:intact], free),

@@ -14,6 +14,10 @@ its off-diagonal entry only where n1 n2 != 0 (on the axes both vanish by the mir
 These are the independent errors the data hold: a nodal likelihood counts each orbit's 2 N values
 of each load. An offset common to every orbit (models/md_dispersion.py's tau) is tied by them to the
 parameters: predictive error fields draw it from its conditional posterior (``common_offset_posterior``).
+With a measurement error of the compliances (models/md_dispersion.py's sigma_m, which
+``off_orbit_response`` measures on single-wave records) the training orbits' model errors are known
+given the parameters only up to it (``orbit_error_posterior``); ``wave_power_share`` says how much of
+a load lies on given orbits.
 """
 from __future__ import annotations
 
