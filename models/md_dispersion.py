@@ -3,7 +3,7 @@ moduli, the horizon and the kernel shape from the MD sheet's measured static dis
 
     lambda + mu, mu, delta, shape (or d)   as models/md_kernel.py
     s_b   ~ HalfNormal(0.1)   the relative model error on shell b of |k| h
-    C_o   : Delta_o = L_o^T C_o L_o - I ~ GOE(s_b(k_o)),   S(k_o) = L_o L_o^T the PD symbol
+    C_o   : Delta_o = L_o^T C_o L_o - I ~ GOE(s_b(k_o)) + GOE(sigma_m),   S(k_o) = L_o L_o^T the PD symbol
 
 C_o is the compliance the sinusoidal loads measure on orbit o (``bayespd.learn.dispersion``).
 PD and the coarse-grained MD differ by their dispersion, an error correlated over the whole sheet
@@ -14,6 +14,14 @@ independent, N(0, s^2) on the diagonal and N(0, s^2 / 2) off it (the rotation-in
 the choice of factor L does not matter), the off-diagonal only where n1 n2 != 0 (on the axes
 both fields have none by mirror symmetry). C = L^-T (I + Delta) L^-1 is linear in Delta, so the
 density of C is that of Delta times det(S)^(q/2) (q = 3 or 2 entries).
+
+``measurement`` sigma_m: the measured compliances are not exact (the MD sheet's response at the
+loads' size is not linear, and coarse graining adds its part): a measurement error of the same law,
+sd sigma_m, fixed from the data (experiments/md_learning.py: the training records' response that
+no compliance holds, ``learn.dispersion.off_orbit_response``). On the training compliances it
+adds to the model error's variance (s_b^2 + sigma_m^2: the two are not separable there); it
+separates them in prediction, where the model error at a training wave is known only up to it
+(``learn.dispersion.orbit_error_posterior``) and a predicted record has its own.
 """
 from __future__ import annotations
 
@@ -74,18 +82,20 @@ def _goe(A, off):
 
 
 def md_dispersion(sheet, wavevectors, off_diagonal, shells, nominal: float, positive_kernel: bool = False,
-                  common: bool = True):
+                  common: bool = True, measurement: float = 0.0):
     """A Pyro model ``model(C=None)`` for the compliances C (O, 2, 2) measured at ``wavevectors``
     (O, 2) (``bayespd.learn.dispersion.measured_compliance``; ``off_diagonal`` (O,) as it returns);
     ``shells``: edges in |k| h of the relative errors' shells (each must hold an orbit).
-    ``common``: with the offset common to all orbits (site ``tau``).
-    Sites ``lam_plus_mu``, ``mu``, ``delta``, ``shape`` (or ``d``), ``s`` (and ``tau``)."""
+    ``common``: with the offset common to all orbits (site ``tau``); ``measurement``: sigma_m
+    (module docstring). Sites ``lam_plus_mu``, ``mu``, ``delta``, ``shape`` (or ``d``), ``s`` (and ``tau``)."""
     k = torch.as_tensor(wavevectors, dtype=torch.float64)
     shell = shell_of(k.numpy(), sheet.material.particles.h, shells)
     found = torch.bincount(shell, minlength=len(shells) + 1)
     if not bool((found > 0).all()):
         raise ValueError(f"every shell needs an orbit (orbits per shell {found.tolist()}): choose edges in |k| h "
                          "between the loads' wavenumbers")
+    if not measurement >= 0:
+        raise ValueError(f"the measurement error's sd must be non-negative, got {measurement}")
     draw = kernel_prior(sheet, nominal, positive_kernel)
     count = int(2 * len(k) + torch.as_tensor(off_diagonal).sum())
 
@@ -96,6 +106,7 @@ def md_dispersion(sheet, wavevectors, off_diagonal, shells, nominal: float, posi
         s = pyro.sample("s", dist.HalfNormal(0.1 * torch.ones(len(shells) + 1, dtype=k.dtype)).to_event(1))
         pyro.factor("solvability", -count * solvability_penalty(sheet, params))
         tau = pyro.sample("tau", dist.HalfNormal(torch.tensor(0.1, dtype=k.dtype))) if common else None
-        pyro.sample("C", CompliancePerOrbit(sheet.symbol(params, k), s[shell], off_diagonal, tau), obs=C)
+        sd = (s[shell] ** 2 + measurement**2).sqrt()
+        pyro.sample("C", CompliancePerOrbit(sheet.symbol(params, k), sd, off_diagonal, tau), obs=C)
 
     return model

@@ -14,6 +14,10 @@ its off-diagonal entry only where n1 n2 != 0 (on the axes both vanish by the mir
 These are the independent errors the data hold: a nodal likelihood counts each orbit's 2 N values
 of each load. An offset common to every orbit (models/md_dispersion.py's tau) is tied by them to the
 parameters: predictive error fields draw it from its conditional posterior (``common_offset_posterior``).
+With a measurement error of the compliances (models/md_dispersion.py's sigma_m, which
+``off_orbit_response`` measures on single-wave records) the training orbits' model errors are known
+given the parameters only up to it (``orbit_error_posterior``); ``wave_power_share`` says how much of
+a load lies on given orbits.
 """
 from __future__ import annotations
 
@@ -53,6 +57,42 @@ def measured_compliance(forces: torch.Tensor, y: torch.Tensor, n: int) -> tuple[
     return modes, C, torch.as_tensor((modes[:, 0] > 0) & (modes[:, 1] > 0))
 
 
+def _orbit_index(modes, n: int) -> torch.Tensor:
+    """Flat indices (into an n x n FFT grid) of every lattice wavevector of the orbits
+    {(+-n1, +-n2)} of ``modes`` (O, 2)."""
+    found = {(s1 * n1 % n) * n + (s2 * n2 % n) for n1, n2 in np.asarray(modes).tolist() for s1 in (1, -1)
+             for s2 in (1, -1)}
+    return torch.as_tensor(sorted(found))
+
+
+def wave_power_share(forces: torch.Tensor, modes, n: int) -> torch.Tensor:
+    """The fraction (loads,) of each load's power (|f_hat|^2 summed over both components and every
+    k != 0) on the lattice wavevectors of the orbits ``modes`` (O, 2) (e.g. the training orbits of
+    ``measured_compliance``); ``forces`` (loads, n * n, 2), nodes x-major."""
+    power = torch.fft.fft2(torch.as_tensor(forces).reshape(-1, n, n, 2), dim=(1, 2)).abs().pow(2).sum(-1)
+    power = power.reshape(len(power), -1)
+    power[:, 0] = 0.0
+    return power[:, _orbit_index(modes, n)].sum(1) / power.sum(1)
+
+
+def off_orbit_response(forces: torch.Tensor, y: torch.Tensor, n: int) -> torch.Tensor:
+    """For single-wave loads (eq 5.1): the relative norm (loads,) of each zero-mean response ``y``
+    outside its load's orbit (the (n1, n2) of the load's strongest coefficient). A linear,
+    translation-invariant sheet answers on the orbit alone (0); the rest is the response no
+    compliance holds: the harmonics of the MD sheet's non-linearity (k1 + k2 of the load's own
+    waves, e.g. 2 k) and the coarse graining's leakage."""
+    f_hat = torch.fft.fft2(torch.as_tensor(forces).reshape(-1, n, n, 2), dim=(1, 2))
+    y_power = torch.fft.fft2(torch.as_tensor(y).reshape(-1, n, n, 2), dim=(1, 2)).abs().pow(2).sum(-1)
+    out = []
+    for m in range(len(f_hat)):
+        n1, n2 = np.unravel_index(int(f_hat[m].abs().pow(2).sum(-1).argmax()), (n, n))
+        power = y_power[m].reshape(-1).clone()
+        total = power.sum()
+        power[_orbit_index([(n1, n2)], n)] = 0.0
+        out.append((power.sum() / total).sqrt())
+    return torch.stack(out)
+
+
 def relative_compliance_error(S: torch.Tensor, C: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(Delta = L^T C L - I (O, 2, 2), log det S (O,)) for symbols S (O, 2, 2), S = L L^T; a symbol
     that is not positive definite (an operator that is not solvable) raises NotPositiveDefiniteError."""
@@ -72,18 +112,17 @@ def shell_of(wavevectors, h: float, edges) -> torch.Tensor:
     return torch.as_tensor(np.searchsorted(edges, np.linalg.norm(np.asarray(wavevectors), axis=-1) * h))
 
 
-class CommonOffset(NamedTuple):
-    """A normal law of the offset c (2 x 2, symmetric) common to the relative compliance errors of
-    every wavevector: entries 00, 11, 01 independent, with means ``mean`` and sds ``sd`` (both
-    (2, 2), symmetric)."""
+class SymmetricNormal(NamedTuple):
+    """A normal law of symmetric 2 x 2 matrices (the common offset c, or a batch (..., 2, 2) of
+    orbit errors): entries 00, 11, 01 independent, with means ``mean`` and sds ``sd`` (both
+    (..., 2, 2), symmetric)."""
 
     mean: torch.Tensor
     sd: torch.Tensor
 
     def sample(self, generator: torch.Generator) -> torch.Tensor:
-        z = torch.randn(3, dtype=self.mean.dtype, generator=generator)
-        Z = torch.stack([torch.stack([z[0], z[2]]), torch.stack([z[2], z[1]])])
-        return self.mean + self.sd * Z
+        z = torch.randn(*self.mean.shape[:-2], 3, dtype=self.mean.dtype, generator=generator)
+        return self.mean + self.sd * _symmetric(z.unbind(-1))
 
 
 _ENTRY_SCALE = (1.0, 1.0, math.sqrt(0.5))  # entries 00, 11, 01: sd s and tau on the diagonal, s / sqrt 2 and tau / sqrt 2 off it
@@ -91,19 +130,19 @@ _ENTRY_SCALE = (1.0, 1.0, math.sqrt(0.5))  # entries 00, 11, 01: sd s and tau on
 
 def _symmetric(values) -> torch.Tensor:
     a, b, c = values
-    return torch.stack([torch.stack([a, c]), torch.stack([c, b])])
+    return torch.stack([torch.stack([a, c], -1), torch.stack([c, b], -1)], -2)
 
 
-def common_offset_prior(tau: float) -> CommonOffset:
+def common_offset_prior(tau: float) -> SymmetricNormal:
     """The offset's prior of models/md_dispersion.py: mean 0, sd tau on the diagonal and tau / sqrt 2
     off it (the law of CompliancePerOrbit's common part)."""
     if not tau > 0:
         raise ValueError(f"tau must be positive, got {tau}")
     tau = torch.as_tensor(tau, dtype=torch.float64)
-    return CommonOffset(torch.zeros(2, 2, dtype=tau.dtype), _symmetric([tau * w for w in _ENTRY_SCALE]))
+    return SymmetricNormal(torch.zeros(2, 2, dtype=tau.dtype), _symmetric([tau * w for w in _ENTRY_SCALE]))
 
 
-def common_offset_posterior(Delta: torch.Tensor, s: torch.Tensor, tau: float, off_diagonal) -> CommonOffset:
+def common_offset_posterior(Delta: torch.Tensor, s: torch.Tensor, tau: float, off_diagonal) -> SymmetricNormal:
     """The offset's conditional posterior given the relative errors ``Delta`` (O, 2, 2) of the
     training orbits at fixed parameters (``relative_compliance_error``), their sds ``s`` (O,) and
     tau; ``off_diagonal`` (O,): the orbits with an 01 entry (n1 n2 != 0).
@@ -129,7 +168,26 @@ def common_offset_posterior(Delta: torch.Tensor, s: torch.Tensor, tau: float, of
         total = 1.0 / tau**2 + precision[held].sum()
         mean.append((precision[held] * value[held]).sum() / total)
         sd.append(w * total.rsqrt())
-    return CommonOffset(_symmetric(mean), _symmetric(sd))
+    return SymmetricNormal(_symmetric(mean), _symmetric(sd))
+
+
+def orbit_error_posterior(Delta: torch.Tensor, s: torch.Tensor, measurement: float, offset: torch.Tensor) -> SymmetricNormal:
+    """The law of the training orbits' model errors c + eps_o given their measured relative errors
+    ``Delta`` (O, 2, 2) = c + eps_o + m_o, the common offset c = ``offset`` (2, 2; a draw of
+    ``common_offset_posterior`` with the orbits' total sds sqrt(s^2 + measurement^2)), the model
+    errors' sds ``s`` (O,) and the measurement error's sd ``measurement`` (models/md_dispersion.py):
+    per entry e, eps_oe ~ N(0, w_e^2 s_o^2) and m_oe ~ N(0, w_e^2 sigma^2) give, with
+    r_o = s_o^2 / (s_o^2 + sigma^2), mean c + r_o (Delta_o - c) and sd w_e sqrt(r_o) sigma
+    (sigma = 0: Delta itself, the measured compliance taken as exact)."""
+    Delta, s = torch.as_tensor(Delta), torch.as_tensor(s, dtype=torch.float64)
+    if Delta.ndim != 3 or Delta.shape[1:] != (2, 2) or s.shape != Delta.shape[:1]:
+        raise ValueError(f"Delta must be (O, 2, 2) with s (O,), got {tuple(Delta.shape)}, {tuple(s.shape)}")
+    if not (bool((s > 0).all()) and measurement >= 0):
+        raise ValueError(f"the error sds must be positive (measurement: non-negative), got s = {s.tolist()}, "
+                         f"measurement = {measurement}")
+    r = (s**2 / (s**2 + measurement**2))[:, None, None]
+    scale = _symmetric([torch.as_tensor(w, dtype=s.dtype) for w in _ENTRY_SCALE])
+    return SymmetricNormal(offset + r * (Delta - offset), scale * (r.sqrt() * measurement).expand(Delta.shape))
 
 
 def orbit_errors_on_lattice(modes, Delta: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -150,22 +208,32 @@ def orbit_errors_on_lattice(modes, Delta: torch.Tensor, n: int) -> tuple[torch.T
 
 
 def error_field(S: torch.Tensor, forces: torch.Tensor, s: torch.Tensor, offset: torch.Tensor, n: int,
-                generator: torch.Generator, known: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+                generator: torch.Generator, known: tuple[torch.Tensor, torch.Tensor] | None = None,
+                measurement: float = 0.0) -> torch.Tensor:
     """One draw of the model error u_md - u_pd (loads, n * n, 2) under ``forces`` (loads, n * n, 2):
     at each k != 0, L^-T Delta(k) L^-1 f_hat(k) with S (n * n - 1, 2, 2) the symbols at
     ``PeriodicSheet.wavevectors``, Delta(k) = Delta(-k) symmetric of entries N(0, s_k^2) (s_k^2 / 2
     off the diagonal; ``s`` (n * n - 1,)) plus ``offset`` (2, 2, symmetric), common to every k (a
     draw of ``common_offset_prior`` or ``common_offset_posterior``); ``known``: (index, Delta) of
-    wavevectors whose error the data fix (``orbit_errors_on_lattice``), which replace the draw there."""
+    wavevectors whose error the data fix (``orbit_errors_on_lattice``), which replace the draw there;
+    ``measurement``: the sd of the predicted record's own measurement error, a fresh symmetric
+    relative error of the same law at every k (models/md_dispersion.py)."""
     if offset.shape != (2, 2) or not torch.equal(offset, offset.T):
-        raise ValueError(f"the common offset must be a symmetric 2 x 2 matrix (CommonOffset.sample), got {offset}")
-    A = torch.randn(n * n, 2, 2, dtype=S.dtype, generator=generator)
+        raise ValueError(f"the common offset must be a symmetric 2 x 2 matrix (SymmetricNormal.sample), got {offset}")
     a, b = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
     flat, partner = (a * n + b).ravel(), ((-a % n) * n + (-b % n)).ravel()
-    A = s[:, None, None] * A[torch.as_tensor(np.minimum(flat, partner))][1:]  # one Delta for k and -k
-    Delta = (A + A.transpose(-1, -2)) / 2 + offset  # the diagonal A's own, N(0, s^2); off it N(0, s^2 / 2)
+    pair = torch.as_tensor(np.minimum(flat, partner))
+
+    def symmetric_draw(sd):  # one N(0, sd^2) (N(0, sd^2 / 2) off the diagonal) matrix for k and -k
+        A = torch.randn(n * n, 2, 2, dtype=S.dtype, generator=generator)
+        A = sd * A[pair][1:]
+        return (A + A.transpose(-1, -2)) / 2
+
+    Delta = symmetric_draw(s[:, None, None]) + offset
     if known is not None:
         Delta[known[0]] = known[1].to(Delta.dtype)
+    if measurement > 0:
+        Delta = Delta + symmetric_draw(measurement)
     Linv = torch.linalg.inv(torch.linalg.cholesky(S)).to(torch.complex128)
     f_hat = torch.fft.fft2(torch.as_tensor(forces).reshape(-1, n, n, 2), dim=(1, 2)).reshape(len(forces), -1, 2)
     e_hat = torch.zeros_like(f_hat)

@@ -5,6 +5,8 @@
   box actually built (a whole number of lattice cells, within 2 % of 100 A), so every load is
   periodic. n1 = n2 = 0 (a uniform force: no equilibrium on a periodic sheet) is left out, which
   leaves 6 * 6 * 2 - 2 = 70 loads, the paper's count.
+* ``unseen_cases``: eq 5.1's loads on waves the training set lacks (max(n1, n2) = 6 or 7, both
+  axes of the symbol), validation loads that test a model error off the training orbits (issue 28).
 * ``disks`` (eqs 5.2-5.3, Table 1): +C on a disk of radius R at the centre and -C on the disk
   centred on the periodic boundary (the two half-disks at j = -1, +1), profile
   cos(pi/2 min(1, r/R)). The paper's L = 50 is half the box.
@@ -19,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bayespd.validate import in_range, positive
+from bayespd.validate import count, in_range, positive
 
 TABLE_1 = (  # k: (C1, C2, p, R [A]); C is a relative amplitude (its unit is a target strain here)
     (1.0, 0.0, 0, 25.0), (0.0, 1.0, 0, 25.0), (1.0, 0.0, 0, 15.0), (0.0, 1.0, 0, 15.0),
@@ -42,6 +44,17 @@ def sinusoidal_cases(max_mode: int = 5) -> list[tuple[int, int, int]]:
     """(n1, n2, axis) of eq 5.1's training loads, (0, 0) left out: 70 for ``max_mode`` = 5."""
     return [(n1, n2, axis) for axis in (0, 1) for n1 in range(max_mode + 1) for n2 in range(max_mode + 1)
             if n1 or n2]
+
+
+def unseen_cases(max_mode: int = 5) -> list[tuple[int, int, int]]:
+    """(n1, n2, axis) of validation sinusoids outside ``sinusoidal_cases(max_mode)``: the axis waves
+    (m, 0) and (0, m) loaded along and across, and the mixed (m, j), (j, m), m = max_mode + 1,
+    max_mode + 2, j = max_mode // 2 (10 for ``max_mode`` = 5: |k| inside the training range up
+    to (7, 2), whose |k| is 1.03 times the training (5, 5)'s)."""
+    count("max_mode", max_mode, 1, "pass the training set's largest mode index")
+    m1, m2, j = max_mode + 1, max_mode + 2, max(1, max_mode // 2)
+    return [(m1, 0, 0), (0, m1, 1), (m2, 0, 1), (0, m2, 0), (m1, 0, 1), (0, m1, 0),
+            (m1, j, 0), (j, m1, 1), (m2, j, 1), (j, m2, 0)]
 
 
 def sinusoidal(x: np.ndarray, box: np.ndarray, n1: int, n2: int, axis: int, strain: float) -> np.ndarray:

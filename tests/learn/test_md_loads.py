@@ -24,6 +24,20 @@ def test_seventy_sinusoidal_modes_with_strain_bounded_amplitudes(sheet):
         md_loads.amplitude(0.05, k)
 
 
+def test_unseen_waves_are_off_the_training_orbits_and_inside_their_range(sheet):
+    """Ten loads, none on a training orbit (max(n1, n2) > 5), both axes on the axis waves, and
+    |k| at most 1.05 times the training set's largest ((5, 5)): interpolation in |k| h."""
+    x, box = sheet
+    cases = md_loads.unseen_cases()
+    assert len(set(cases)) == 10 and not set((a, b) for a, b, _ in cases) & set((a, b) for a, b, _ in
+                                                                                 md_loads.sinusoidal_cases())
+    assert {(6, 0, 0), (6, 0, 1), (0, 6, 0), (0, 6, 1)} <= set(cases)
+    wavenumber = [np.hypot(*(2 * np.pi * np.array([a, b]) / box)) for a, b, _ in cases]
+    assert max(wavenumber) < 1.05 * np.hypot(*(2 * np.pi * np.array([5, 5]) / box))
+    with pytest.raises(ValueError, match="largest mode"):
+        md_loads.unseen_cases(0)
+
+
 @pytest.mark.parametrize("case", range(1, 11))
 def test_disk_loads_are_self_equilibrated(sheet, case):
     """+1 disk at the centre, -1 across the periodic boundary: the net force is the lattice
