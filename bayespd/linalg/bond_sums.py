@@ -55,12 +55,15 @@ class BondSums:
         t = data[0] * y.index_select(0, self._p) + data[1] * y.index_select(0, self._q)
         return self.bonds.apply_transpose(self.bond_data, t)
 
-    def normal_product(self, data, w, free_index: np.ndarray):
+    def normal_product(self, data, w, free_index: np.ndarray, bond_weights=None):
         """x -> A_f^T diag(w) A_f x on the free dofs (numpy, x of shape (n_free,)): A's columns
-        restricted to ``free_index``; two compiled passes over the rows of B where numba is
-        installed (``bond_loops.shared``: the same bits on one thread or two), else numpy."""
+        restricted to ``free_index``; plus B_f^T diag(k) B_f x with ``bond_weights`` k (B's own
+        stiffness term, e.g. LPS's bond term: then the product is the whole K, in the same two
+        passes). Two compiled passes over the rows of B where numba is installed
+        (``bond_loops.shared``: the same bits on one thread or two), else numpy."""
         s, w = np.ascontiguousarray(to_numpy(data), dtype=np.float64), np.asarray(to_numpy(w), dtype=np.float64)
         w = np.broadcast_to(w, (self.shape[0],))
+        k = np.zeros(1) if bond_weights is None else np.ascontiguousarray(to_numpy(bond_weights), dtype=np.float64)
         n, b = self.shape[0], self.block
         compiled = bond_loops.usable()
         if compiled:
@@ -77,11 +80,13 @@ class BondSums:
                 parts = bond_loops.shares(ends, bond_loops.SHARES_PER_THREAD * threads if threads > 1 else 1)
                 u = full.reshape(n, b)
                 theta = bond_loops.shared(_sums, (u, *blocks, s), parts, (n,), np.float64, threads)
-                out = bond_loops.shared(_spread, (w * theta, *blocks, s), parts, (n, b), np.float64, threads)
+                out = bond_loops.shared(_spread, (u, w * theta, *blocks, s, k, bond_weights is not None), parts,
+                                        (n, b), np.float64, threads)
                 return out.reshape(-1)[free_index]
             e = B @ full
             z = w * (np.bincount(self.p, s[0] * e, minlength=n) + np.bincount(self.q, s[1] * e, minlength=n))
-            return (B.T @ (s[0] * z[self.p] + s[1] * z[self.q]))[free_index]
+            t = s[0] * z[self.p] + s[1] * z[self.q]
+            return (B.T @ (t if bond_weights is None else t + k * e))[free_index]
 
         return product
 
@@ -158,10 +163,16 @@ def _sums(u, p, q, a, c, s, b0, b1, lo, out):  # pragma: no cover (compiled)
 
 
 @bond_loops.fast_kernel
-def _spread(z, p, q, a, c, s, b0, b1, lo, out):  # pragma: no cover (compiled)
-    """out[p_r - lo] += a_r t_r, out[q_r - lo] += c_r t_r, t_r = s_0r z_p + s_1r z_q: B^T S^T z."""
+def _spread(u, z, p, q, a, c, s, kb, bonds, b0, b1, lo, out):  # pragma: no cover (compiled)
+    """out[p_r - lo] += a_r t_r, out[q_r - lo] += c_r t_r, t_r = s_0r z_p + s_1r z_q (B^T S^T z),
+    plus k_r (a_r . u_p + c_r . u_q) with ``bonds`` (B^T diag(k) B u)."""
     for r in range(b0, b1):
         t = s[0, r] * z[p[r]] + s[1, r] * z[q[r]]
+        if bonds:
+            e = 0.0
+            for k in range(u.shape[1]):
+                e += a[r, k] * u[p[r], k] + c[r, k] * u[q[r], k]
+            t += kb[r] * e
         for k in range(out.shape[1]):
             out[p[r] - lo, k] += a[r, k] * t
             out[q[r] - lo, k] += c[r, k] * t

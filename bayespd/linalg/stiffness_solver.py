@@ -193,10 +193,13 @@ class Assembly:
 
         return matvec
 
-    def _factored(self, terms):
+    def _factored(self, terms, bond_term=None):
         """(x, y) -> y + sum A^T (w A x) over the factored terms (``BondSums``: the LPS
-        dilatation), each by its own ``normal_product`` on the free dofs."""
-        products = [g.normal_product(d, w, self.free_index) for g, d, w in terms if g.factored]
+        dilatation), each by its own ``normal_product`` on the free dofs; ``bond_term``: the
+        (B, data, k) term of the bonds a factored term sums, applied in its passes."""
+        products = [g.normal_product(d, w, self.free_index,
+                                     bond_term[2] if bond_term is not None and bond_term[0] is g.bonds else None)
+                    for g, d, w in terms if g.factored]
 
         def add(x, y):
             for normal in products:
@@ -211,6 +214,10 @@ class Assembly:
         rows, negative weights) on the free columns, its transpose stored as CSR (a gather, not
         a scatter), each product in runs of rows on two threads where numba is installed
         (``row_runs``); the factored terms by ``_factored``."""
+        fused = _fused_bond_term(terms)
+        if fused is not None:  # K = B^T diag(k) B + the factored terms: all in their passes, K_b unused
+            factored = self._factored(terms, fused)
+            return lambda x: factored(x, np.zeros_like(x))
         rest, factored = [], self._factored(terms)
         for g, d, w in terms:
             if g.factored:
@@ -284,6 +291,19 @@ class Assembly:
             return Z.reshape((n,) + r.shape[1:])[idx]
 
         return precondition
+
+
+def _fused_bond_term(terms):
+    """The (B, data, k) term that a factored term's passes can apply (``BondSums.normal_product``
+    with ``bond_weights``) when K is that term and factored terms over the same B alone, with
+    k >= 0 (so that it is the whole of K_b): LPS without a negative bond weight; else None."""
+    explicit = [t for t in terms if not t[0].factored]
+    factored = [g for g, _, _ in terms if g.factored]
+    if len(explicit) != 1 or not factored or any(g.bonds is not explicit[0][0] for g in factored):
+        return None
+    g, d, w = explicit[0]
+    w = np.asarray(to_numpy(w))
+    return explicit[0] if len(g.two_block_rows) == g.shape[0] and bool((w >= 0).all()) else None
 
 
 REUSE_SLACK = 1.25  # a kept hierarchy serves while a solve takes at most this x those it was built for (+1)

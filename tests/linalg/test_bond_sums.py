@@ -28,8 +28,9 @@ def bond_operator(n, dim, rng, bonds=300):
 
 @pytest.mark.parametrize("dim", [2, 3])
 def test_products_equal_the_sparse_product_s_b(dim):
-    """apply, apply_transpose, the explicit Gram and normal_product (compiled and numpy, every
-    dof free or some constrained) against S B formed by scipy, to rounding (1e-13 relative)."""
+    """apply, apply_transpose, the explicit Gram and normal_product (compiled and numpy, some
+    dofs constrained; with B's own term B^T diag(k) B too) against S B formed by scipy, to
+    rounding (1e-13 relative)."""
     rng = np.random.default_rng(dim)
     n = 60
     B, bdata, p, q = bond_operator(n, dim, rng)
@@ -43,16 +44,21 @@ def test_products_equal_the_sparse_product_s_b(dim):
     assert np.abs(A.apply(s, torch.as_tensor(x)).numpy() - D @ x).max() <= 1e-13 * scale
     assert np.abs(A.apply_transpose(s, torch.as_tensor(y)).numpy() - D.T @ y).max() <= 1e-13 * scale
     assert np.abs(A.operator(s).toarray() - D).max() <= 1e-14 * np.abs(D).max()
-    w = rng.standard_normal(n)
+    w, k = rng.standard_normal(n), rng.random(len(p))
     free = np.flatnonzero(rng.random(dim * n) > 0.2)
+    Bd = B.operator(bdata.numpy()).toarray()
     K = (D.T @ np.diag(w) @ D)[np.ix_(free, free)]
+    Kb = (Bd.T @ np.diag(k) @ Bd)[np.ix_(free, free)]
     for enabled in (True, False):
         bond_loops.ENABLED = enabled
         try:
             got = A.normal_product(s, w, free)(x[free])
+            whole = A.normal_product(s, w, free, bond_weights=k)(x[free])
         finally:
             bond_loops.ENABLED = True
-        assert np.abs(got - K @ x[free]).max() <= 1e-13 * np.abs(K).max() * np.abs(x).max() * n
+        scale = np.abs(K).max() * np.abs(x).max() * n
+        assert np.abs(got - K @ x[free]).max() <= 1e-13 * scale
+        assert np.abs(whole - (K + Kb) @ x[free]).max() <= 1e-13 * (scale + np.abs(Kb).max() * np.abs(x).max() * n)
 
 
 def test_apply_is_differentiable_in_the_weights_and_the_vector():
