@@ -116,12 +116,31 @@ def conditional(gp: WaveGP, kh, Delta, off_diagonal, measurement: float, new) ->
     return out
 
 
-def draw_errors(gp: WaveGP, kh, Delta, off_diagonal, measurement: float, new, generator: torch.Generator) -> torch.Tensor:
+def draw_errors(gp: WaveGP, kh, Delta, off_diagonal, measurement: float, new, generator: torch.Generator,
+                inflation: float = 1.0) -> torch.Tensor:
     """One draw (P, 2, 2) of a predicted record's model error f(k) + eps(k) at ``new`` (P, 2) in k h
-    given the training errors (``conditional``); the off-diagonal f is 0 on the axes by the kernel."""
+    given the training errors (``conditional``, its deviation from the mean times ``inflation``,
+    e.g. ``frame_extrapolation``'s); the off-diagonal f is 0 on the axes by the kernel."""
     entries = []
     for (mean, cov), w in zip(conditional(gp, kh, Delta, off_diagonal, measurement, new), _ENTRY_SCALE):
         value, vector = torch.linalg.eigh(cov)  # a root robust to the rounding of a near-singular covariance
         z = torch.randn(2, len(cov), dtype=cov.dtype, generator=generator)
-        entries.append(mean + vector @ (value.clamp(min=0).sqrt() * z[0]) + w * gp.white * z[1])
+        entries.append(mean + inflation * (vector @ (value.clamp(min=0).sqrt() * z[0]) + w * gp.white * z[1]))
     return _symmetric(entries)
+
+
+def frame_extrapolation(modes, kh, Delta, off_diagonal, measurement: float) -> torch.Tensor:
+    """The z-scores of the outermost frame of training orbits (max(n1, n2) = its largest, ``modes``
+    (O, 2)) under the GP fitted to the inner ones alone: (Delta_e - mean) / sd of the predictive
+    f + eps + measurement, every observed entry. Their rms is 1 where the GP extrapolates one
+    lattice step as its law says; it measures how far the errors outgrow it from the data alone."""
+    kh, Delta, off = _check(kh, Delta, off_diagonal)
+    frame = torch.as_tensor(np.asarray(modes)).max(1).values
+    inner, outer = frame < frame.max(), frame == frame.max()
+    gp = fit_wave_gp(kh[inner], Delta[inner], off[inner], measurement)
+    z = []
+    for (mean, cov), (value, held, _, w) in zip(conditional(gp, kh[inner], Delta[inner], off[inner], measurement,
+                                                            kh[outer]), _entries(Delta[outer], off[outer])):
+        sd = (cov.diagonal() + w**2 * (gp.white**2 + measurement**2)).sqrt()
+        z.append(((value - mean) / sd)[held])
+    return torch.cat(z)

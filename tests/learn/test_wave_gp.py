@@ -1,10 +1,11 @@
 """bayespd.learn.wave_gp: the GP's conditional is dense Gaussian conditioning of the joint law
 written out entry by entry (to 1e-10), its off-diagonal field vanishes on the axes, and a, l, eta
-drawn into synthetic errors are recovered within 3 of their stated (Laplace) sds."""
+drawn into synthetic errors are recovered within 3 of their stated (Laplace) sds, and the outer
+frame of such errors has z-scores of rms 1 under the GP fitted to the inner ones."""
 import numpy as np
 import torch
 
-from bayespd.learn.wave_gp import WaveGP, conditional, draw_errors, fit_wave_gp
+from bayespd.learn.wave_gp import WaveGP, conditional, draw_errors, fit_wave_gp, frame_extrapolation
 
 GP = WaveGP(0.05, 0.6, 0.01)
 SIGMA_M = 0.004
@@ -61,8 +62,20 @@ def test_off_diagonal_vanishes_on_the_axes_and_spread_grows_away_from_data():
 
 def test_hyperparameters_recovered_within_stated_uncertainty():
     kh, off = quadrant(12)
-    prior = draw_errors(GP, kh[:1], torch.zeros(1, 2, 2, dtype=torch.float64), off[:1], 1e3, kh,
-                        torch.Generator().manual_seed(3))  # one datum with a huge error: a prior draw
-    fit = fit_wave_gp(kh, prior, off, 0.0)
+    fit = fit_wave_gp(kh, prior_draw(kh, off, 3), off, 0.0)
     for got, true, sd in zip((fit.amplitude, fit.length, fit.white), GP[:3], fit.log_sd):
         assert abs(np.log(got / true)) < 3 * sd < 1.0
+
+
+def prior_draw(kh, off, seed):
+    """Errors drawn from the GP's law at ``kh`` (conditioned on one datum of a huge error: the prior)."""
+    return draw_errors(GP, kh[:1], torch.zeros(1, 2, 2, dtype=torch.float64), off[:1], 1e3, kh,
+                       torch.Generator().manual_seed(seed))
+
+
+def test_frame_extrapolation_is_calibrated_on_the_gps_own_errors():
+    kh, off = quadrant(12)
+    modes = torch.round(kh / 0.31)
+    rms = [float(frame_extrapolation(modes, kh, prior_draw(kh, off, seed), off, 0.0).pow(2).mean().sqrt())
+           for seed in range(3)]
+    assert abs(np.mean(rms) - 1.0) < 0.25  # 3 frames of 56 correlated z: sd of the mean rms about 0.09 (6 seeds: 0.78-1.18)
