@@ -16,7 +16,8 @@ delta = 4 h as a reported variant (``phase2_paper_horizon``). Bayes: the posteri
 models/md_dispersion.py (nested Laplace: tau by quadrature; the measured compliance per wave, a
 structured model error, with a measurement error from the training records' off-orbit response;
 models/md_kernel.py's nodal iid likelihood beside it, ``bayes_nodal``), 90 % predictive bands on
-the validation loads (Table 1) and on the unseen loads (sinusoids off the training orbits), and the
+the validation loads (Table 1) and on the unseen loads (sinusoids off the training orbits; their
+model error from bayespd.learn.wave_gp's GP over k, fitted to the training orbits), and the
 moduli intervals. Writes runs/md_learning[_surface]/metrics.json with every error and wall time.
 ``--quick``: one horizon, few iterations.
 """
