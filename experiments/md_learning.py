@@ -310,7 +310,7 @@ def bayes(best, data, md_moduli, quick, structured=True):
         pred.append(mean + error)
     predictive_wall = time.perf_counter() - t
 
-    def band(samples, rows):  # node coverage and mean width / load RMS of the 90 % band on the loads ``rows``,
+    def band(samples, rows):  # node coverage (pooled, per load) and mean width / load RMS of the 90 % band on ``rows``,
         # and the factor about the median by which the band would have to widen to hold 80 % and 90 % of the nodes
         lo, mid, hi = np.quantile(np.array(samples)[:, rows], [0.05, 0.5, 0.95], axis=0)
         y_, s_ = yv[rows], sv[rows]
@@ -319,7 +319,8 @@ def bayes(best, data, md_moduli, quick, structured=True):
             held = [c for c in INFLATION if ((y_ >= mid - c * (mid - lo)) & (y_ <= mid + c * (hi - mid))).all(-1).mean()
                     >= target]
             widen[f"widening_for_{target:.0%}"] = held[0] if held else None
-        return {"node_coverage": float(((y_ >= lo) & (y_ <= hi)).all(-1).mean()),
+        inside = ((y_ >= lo) & (y_ <= hi)).all(-1)
+        return {"node_coverage": float(inside.mean()), "load_node_coverage": inside.mean(1).tolist(),
                 "width_rel": float(((hi - lo) / s_[:, None, None]).mean()), **widen}
 
     at, bands = 0, {}
