@@ -16,7 +16,8 @@ delta = 4 h as a reported variant (``phase2_paper_horizon``). Bayes: the posteri
 models/md_dispersion.py (nested Laplace: tau by quadrature; the measured compliance per wave, a
 structured model error, with a measurement error from the training records' off-orbit response;
 models/md_kernel.py's nodal iid likelihood beside it, ``bayes_nodal``), 90 % predictive bands on
-the validation loads (Table 1) and on the unseen loads (sinusoids off the training orbits), and the
+the validation loads (Table 1) and on the unseen loads (sinusoids off the training orbits; their
+model error from bayespd.learn.wave_gp's GP over k, fitted to the training orbits), and the
 moduli intervals. Writes runs/md_learning[_surface]/metrics.json with every error and wall time.
 ``--quick``: one horizon, few iterations.
 """
@@ -42,6 +43,7 @@ from bayespd.learn.dispersion import (common_offset_posterior, common_offset_pri
 from bayespd.learn.kernel import UnsolvableKernel, learn_kernel, lps_params, relative_errors
 from bayespd.learn.kernel_shape import KernelShape
 from bayespd.learn.moduli import long_wave_moduli
+from bayespd.learn.wave_gp import draw_errors, fit_wave_gp, frame_extrapolation
 from bayespd.learn.periodic import PeriodicSheet, periodic_bonds, periodic_grid
 from bayespd.materials.lps import LPS
 from bayespd.linalg.sparse import NotPositiveDefiniteError
@@ -216,9 +218,12 @@ def bayes(best, data, md_moduli, quick, structured=True):
     90 % predictive bands on the validation loads (Table 1's disks) and on the unseen loads
     (sinusoids on waves the training set lacks): parameter draws + the model's error term (the
     structured model's common offset drawn from its conditional posterior given the draw and the
-    training compliances, plus the predicted record's own measurement error; for comparison the
-    offset from its prior N(0, tau^2), and the training waves' own model errors fixed at their
-    conditional given the draw's measured ones); their node coverage and width; whether the 90 %
+    training compliances, plus the predicted record's own measurement error; at the waves without a
+    training orbit the error drawn from bayespd.learn.wave_gp's GP conditional given the training
+    orbits', widened by its frame test, on the training waves the shells' draw; for comparison the
+    shells' draw everywhere, the offset from its prior N(0, tau^2), the training waves' own model
+    errors fixed at their conditional given the draw's measured ones, and the GP everywhere as
+    fitted); their node coverage and width; whether the 90 %
     intervals of the 2D moduli hold the MD sheet's."""
     sheet = data["sheet"]
     f, u = data["train"]
@@ -266,7 +271,11 @@ def bayes(best, data, md_moduli, quick, structured=True):
     if structured:
         k_train = torch.as_tensor(modes * 2 * np.pi / sheet.box)
         train_shell = shell_of(k_train.numpy(), h, SHELLS)
-    pred, fresh, pinned, inadmissible = [], [], [], 0
+        gp, inflation, gp_wall = _wave_gp(sheet, draws, modes, k_train, C, off, train_shell, sigma_m)
+        quadrant = np.array([(i, j) for i in range(n // 2 + 1) for j in range(n // 2 + 1) if i or j])
+        k_quadrant, waves = torch.as_tensor(quadrant * 2 * np.pi / sheet.box), torch.Generator().manual_seed(2)
+        new = ~(quadrant[:, None] == modes[None]).all(-1).any(1)  # the waves without a training orbit
+    pred, shells, fresh, pinned, smooth, inadmissible = [], [], [], [], [], 0
     t = time.perf_counter()
     for k in range(len(draws["mu"])):  # every draw: the 5-95 % quantiles of n draws hold a new draw of the same law
         # with probability (q95 - q05 order positions) / (n + 1): 0.891 for n = 200, 0.865 for the 50 used before
@@ -280,12 +289,19 @@ def bayes(best, data, md_moduli, quick, structured=True):
                     Delta, _ = relative_compliance_error(sheet.symbol(p, k_train), C)
                     total = (s_k[train_shell] ** 2 + sigma_m**2).sqrt()
                     offset = common_offset_posterior(Delta, total, tau_k, off).sample(generator)
-                    error = error_field(S_all, fv, s_k[shell], offset, n, generator, measurement=sigma_m).numpy()
+                    shells.append(mean + error_field(S_all, fv, s_k[shell], offset, n, generator, measurement=sigma_m).numpy())
+                    field = offset + draw_errors(gp, k_train * h, Delta - offset, off, sigma_m, k_quadrant[new] * h, waves,
+                                                 inflation)  # off the training orbits: the GP, widened as its frame test says
+                    error = error_field(S_all, fv, s_k[shell], offset, n, waves, measurement=sigma_m,
+                                        known=orbit_errors_on_lattice(quadrant[new], field, n)).numpy()
                     fresh.append(mean + error_field(S_all, fv, s_k[shell], common_offset_prior(tau_k).sample(compare),
                                                     n, compare, measurement=sigma_m).numpy())
                     known = orbit_error_posterior(Delta, s_k[train_shell], sigma_m, offset).sample(compare)
                     pinned.append(mean + error_field(S_all, fv, s_k[shell], offset, n, compare, measurement=sigma_m,
                                                      known=orbit_errors_on_lattice(modes, known, n)).numpy())
+                    field = offset + draw_errors(gp, k_train * h, Delta - offset, off, sigma_m, k_quadrant * h, waves)
+                    smooth.append(mean + error_field(S_all, fv, s_k[shell], offset, n, waves, measurement=sigma_m,
+                                                     known=orbit_errors_on_lattice(quadrant, field, n)).numpy())
                 else:
                     error = draws["sigma"][k] * sv[:, None, None] * rng.standard_normal(mean.shape)
         except (ValueError, NotPositiveDefiniteError):  # a Gaussian draw outside the admissible kernels
@@ -294,7 +310,7 @@ def bayes(best, data, md_moduli, quick, structured=True):
         pred.append(mean + error)
     predictive_wall = time.perf_counter() - t
 
-    def band(samples, rows):  # node coverage and mean width / load RMS of the 90 % band on the loads ``rows``,
+    def band(samples, rows):  # node coverage (pooled, per load) and mean width / load RMS of the 90 % band on ``rows``,
         # and the factor about the median by which the band would have to widen to hold 80 % and 90 % of the nodes
         lo, mid, hi = np.quantile(np.array(samples)[:, rows], [0.05, 0.5, 0.95], axis=0)
         y_, s_ = yv[rows], sv[rows]
@@ -303,7 +319,8 @@ def bayes(best, data, md_moduli, quick, structured=True):
             held = [c for c in INFLATION if ((y_ >= mid - c * (mid - lo)) & (y_ <= mid + c * (hi - mid))).all(-1).mean()
                     >= target]
             widen[f"widening_for_{target:.0%}"] = held[0] if held else None
-        return {"node_coverage": float(((y_ >= lo) & (y_ <= hi)).all(-1).mean()),
+        inside = ((y_ >= lo) & (y_ <= hi)).all(-1)
+        return {"node_coverage": float(inside.mean()), "load_node_coverage": inside.mean(1).tolist(),
                 "width_rel": float(((hi - lo) / s_[:, None, None]).mean()), **widen}
 
     at, bands = 0, {}
@@ -312,7 +329,8 @@ def bayes(best, data, md_moduli, quick, structured=True):
         at += len(fs)
         bands[name] = {"default": band(pred, rows)}
         if structured:
-            bands[name] |= {"prior_offset": band(fresh, rows), "training_waves_known": band(pinned, rows),
+            bands[name] |= {"shells": band(shells, rows), "prior_offset": band(fresh, rows),
+                            "training_waves_known": band(pinned, rows), "wave_gp": band(smooth, rows),
                             **_training_wave_share(fs, yv[rows], np.array(pinned)[:, rows], modes, n)}
     summary = {k: {"mean": np.mean(v, 0).tolist(), "sd": np.std(v, 0).tolist(), "q05": np.quantile(v, 0.05, 0).tolist(),
                    "q95": np.quantile(v, 0.95, 0).tolist()} for k, v in draws.items() if k not in ("shape", "D")}
@@ -323,11 +341,30 @@ def bayes(best, data, md_moduli, quick, structured=True):
                            "+ measurement error" if structured else "nodal iid relative noise"),
             "measurement_error": {"sd": sigma_m, "off_orbit_response": harmonics.tolist(),
                                   "off_orbit_response_median": float(harmonics.median())} if structured else None,
+            "wave_gp": {**gp._asdict(), "frame_extrapolation_z_rms": inflation, "fit_wall_time_s": gp_wall}
+            if structured else None,
             "shells_kh": SHELLS if structured else None, "wall_time_s": wall, "predictive_wall_time_s": predictive_wall,
             "draws": len(draws["mu"]), "posterior": summary,
             "validation_band90_node_coverage": bands["validation"]["default"]["node_coverage"],
             "validation_band90_width_rel": bands["validation"]["default"]["width_rel"], "bands90": bands,
             "moduli_interval90_covers_md": covers, "predictive_draws": len(pred), "inadmissible_draws": inadmissible}
+
+
+def _wave_gp(sheet, draws, modes, k_train, C, off, train_shell, sigma_m):
+    """(bayespd.learn.wave_gp's GP fitted to the training orbits' relative errors, less their common
+    offset, at the posterior mean of the parameters; the rms z-score of the outer frame of orbits
+    under the GP of the inner ones (``frame_extrapolation``, the widening one lattice step needs);
+    the wall time)."""
+    t = time.perf_counter()
+    mean = {k: np.mean(np.asarray(draws[k]), 0) for k in ("lambda", "mu", "D", "delta", "s", "tau")}
+    Delta, _ = relative_compliance_error(sheet.symbol(lps_params(mean["lambda"], mean["mu"], mean["D"], mean["delta"]),
+                                                      k_train), C)
+    total = (torch.as_tensor(mean["s"])[train_shell] ** 2 + sigma_m**2).sqrt()
+    offset = common_offset_posterior(Delta, total, float(mean["tau"]), off).mean
+    kh = k_train * sheet.material.particles.h
+    gp = fit_wave_gp(kh, Delta - offset, off, sigma_m)
+    inflation = float(frame_extrapolation(modes, kh, Delta - offset, off, sigma_m).pow(2).mean().sqrt())
+    return gp, inflation, time.perf_counter() - t
 
 
 def _training_wave_share(forces, y, pinned, modes, n):
