@@ -110,8 +110,8 @@ class Assembly:
         hierarchy built at delta = 2h took 16-17 iterations for delta from 2h to 3h where a
         fresh one took 16-20 (benchmarks/README.md, issue 31, seventh pass), and the set-up is
         saved. Its solves may take ``REUSE_SLACK`` times the iterations of the solves of the
-        K_b it was built for, plus one (``_KeptPair.limit``): a solve that reaches that builds the
-        hierarchy anew and goes on with it (``PCGFactor``'s renew; a modulus field 10x
+        K_b it was built for, plus one (``_KeptPair.limit``): a solve that reaches that builds
+        the hierarchy anew and goes on with it (``PCGFactor``'s renew; a modulus field 10x
         steeper than the kept one's took 28 iterations against 13), and the reuse is then
         switched off for this Assembly. Otherwise (new positions, operators or rows, no solve
         yet) both are built anew; ``amg_builds`` counts the builds. K_b's pattern
@@ -157,9 +157,10 @@ class Assembly:
         """x -> K_ff x matrix-free (numpy, x of shape (n_free,) or (n_free, k)).
 
         The operators are stacked into one CSR matrix C (rows: bonds, then particles, ...)
-        with weights W, K = C^T W C (plus the factored terms, ``_factored``), split into ``threads`` row blocks of equal size that are
-        applied in parallel (scipy's sparse products release the GIL; default: the settings'
-        ``matvec_threads``, None there meaning all cores). ``pair``: K_b of these terms
+        with weights W, K = C^T W C (plus the factored terms, ``_factored``), split into
+        ``threads`` row blocks of equal size that are applied in parallel (scipy's sparse
+        products release the GIL; default: the settings' ``matvec_threads``, None there
+        meaning all cores). ``pair``: K_b of these terms
         (``amg.pair_operator``, assembled for the AMG anyway); on one thread the product is
         then K_b x plus the other rows' C_r^T (W_r (C_r x)), each a CSR product on the free
         dofs (``_split_operator``: 2-3x faster than the stacked C and its transpose)."""
