@@ -150,14 +150,26 @@ def _family_ends(i: np.ndarray, j: np.ndarray, n: int):
     return owner, family.indices.astype(np.int64), torch.as_tensor(family.data.astype(np.int64) - 1)
 
 
+def _inline(fn):
+    """Compiled into the kernels that call it (numba), or plain Python without numba."""
+    return fn if bond_loops.numba is None else bond_loops.numba.njit(inline="always", cache=True)(fn)
+
+
+@_inline
+def _row(u, p, q, a, c, r):  # pragma: no cover (compiled)
+    """(B u)_r = a_r . u_p + c_r . u_q."""
+    e = 0.0
+    for k in range(u.shape[1]):
+        e += a[r, k] * u[p[r], k] + c[r, k] * u[q[r], k]
+    return e
+
+
 @bond_loops.fast_kernel
 def _sums(u, p, q, a, c, s, b0, b1, lo, out):  # pragma: no cover (compiled)
-    """out[k - lo] += s_kr (a_r . u_p + c_r . u_q) over the rows r in [b0, b1): S B u (p, q
-    unsigned views: no wrap-around checks)."""
+    """out[k - lo] += s_kr (B u)_r over the rows r in [b0, b1): S B u (p, q unsigned views: no
+    wrap-around checks)."""
     for r in range(b0, b1):
-        e = 0.0
-        for k in range(u.shape[1]):
-            e += a[r, k] * u[p[r], k] + c[r, k] * u[q[r], k]
+        e = _row(u, p, q, a, c, r)
         out[p[r] - lo] += s[0, r] * e
         out[q[r] - lo] += s[1, r] * e
 
@@ -165,14 +177,11 @@ def _sums(u, p, q, a, c, s, b0, b1, lo, out):  # pragma: no cover (compiled)
 @bond_loops.fast_kernel
 def _spread(u, z, p, q, a, c, s, kb, bonds, b0, b1, lo, out):  # pragma: no cover (compiled)
     """out[p_r - lo] += a_r t_r, out[q_r - lo] += c_r t_r, t_r = s_0r z_p + s_1r z_q (B^T S^T z),
-    plus k_r (a_r . u_p + c_r . u_q) with ``bonds`` (B^T diag(k) B u)."""
+    plus k_r (B u)_r with ``bonds`` (B^T diag(k) B u)."""
     for r in range(b0, b1):
         t = s[0, r] * z[p[r]] + s[1, r] * z[q[r]]
         if bonds:
-            e = 0.0
-            for k in range(u.shape[1]):
-                e += a[r, k] * u[p[r], k] + c[r, k] * u[q[r], k]
-            t += kb[r] * e
+            t += kb[r] * _row(u, p, q, a, c, r)
         for k in range(out.shape[1]):
             out[p[r] - lo, k] += a[r, k] * t
             out[q[r] - lo, k] += c[r, k] * t
