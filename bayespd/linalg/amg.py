@@ -176,7 +176,7 @@ class VCycle:
         """``_cycle`` with the hybrid Gauss-Seidel of ``row_runs`` (two threads)."""
         smooth, P, R = self.smoothers[k]
         X = np.stack([smooth.pre(b) for b in B])
-        coarse = np.stack([R.product(smooth.residual(x, b)) for x, b in zip(X, B)])
+        coarse = np.stack([R.product(smooth.residual_after_pre(x, b)) for x, b in zip(X, B)])
         X += np.stack([P.product(e) for e in self._cycle(k + 1, coarse)])
         return np.stack([smooth.post(x, b) for x, b in zip(X, B)])
 

@@ -44,6 +44,7 @@ RUNS = 8  # runs of rows (fixed: the results do not depend on the thread count)
 MIN_ROWS = 4096  # rows per run below which the matrix is one run
 BANDWIDTHS = 3  # a smoother's runs span at least this many bandwidths (the module docstring)
 NONE = np.iinfo(np.uint64).max  # a row without a diagonal entry
+SINGLE_RANGE = (1e-30, 1e30)  # a diagonal within which a smoother's entries are read in single precision
 
 
 def usable() -> bool:
@@ -67,37 +68,46 @@ os.register_at_fork(before=lambda: _WARM and _WARM[0].join(), after_in_child=_WA
 
 
 def _load():
-    runs, b = RowRuns.smoother(sp.identity(2, format="csr")), np.ones(2)
-    runs.post(runs.pre(b), runs.residual(b, runs.product(b)))
+    identity, b = sp.identity(2, format="csr"), np.ones(2)
+    runs = RowRuns.smoother(identity)  # single-precision entries, as the sweeps read them
+    x = runs.pre(RowRuns(identity).product(b))
+    runs.post(x, runs.residual_after_pre(x, b))
 
 
 class RowRuns:
     """A CSR matrix A (n x m) in runs of rows (at most ``RUNS``, each at least ``MIN_ROWS`` and
     ``shortest`` rows long): ``product``, and for ``smoother``'s runs the sweeps ``pre``,
-    ``residual``, ``post``."""
+    ``residual_after_pre``, ``post``."""
 
     def __init__(self, A, shortest: int | None = None):
         self.A = A
         # unsigned views of the index arrays (the module docstring)
         unsigned = np.uint32 if A.indices.dtype == np.int32 else np.uint64
         self.indptr, self.indices = A.indptr.view(unsigned), A.indices.view(unsigned)
+        self.data = A.data
         n = A.shape[0]
         count = max(1, min(RUNS, n // max(MIN_ROWS, shortest or 0)))
         cuts = [n * t // count for t in range(count + 1)]
         self.runs = list(zip(cuts[:-1], cuts[1:]))
 
     @classmethod
-    def smoother(cls, A) -> RowRuns:
+    def smoother(cls, A, single: bool = True) -> RowRuns:
         """The runs of A with sorted indices (A itself when sorted), each ``BANDWIDTHS`` of A's
-        bandwidths long at least, its diagonal located and the l1 pivots computed."""
+        bandwidths long at least, its diagonal located and the l1 pivots computed. ``single``:
+        the sweeps read A's entries rounded to single precision where its diagonal
+        lies in single's range (the vectors and sums stay double)."""
         A = A if A.has_sorted_indices else A.sorted_indices()
         filled = np.flatnonzero(np.diff(A.indptr))
         reach = int(np.max(A.indices[A.indptr[filled + 1] - 1] - filled, initial=0))  # sorted: a row's last column
         runs = cls(A, BANDWIDTHS * reach)
+        if single:
+            d = np.abs(A.diagonal())
+            if d.max(initial=0.0) < SINGLE_RANGE[1] and d[d > 0].min(initial=np.inf) > SINGLE_RANGE[0]:
+                runs.data = A.data.astype(np.float32)
         runs.diagonal = np.empty(A.shape[0], dtype=np.uint64)  # each row's diagonal entry (NONE: none)
         runs.pivot = np.zeros(A.shape[0])  # the l1 pivots a_ii + sum of |a_ij| outside the run
         cuts = np.array([lo for lo, _ in runs.runs] + [A.shape[0]], dtype=np.uint64)
-        _pivots(runs.indptr, runs.indices, runs.A.data, cuts, runs.diagonal, runs.pivot)
+        _pivots(runs.indptr, runs.indices, runs.data, cuts, runs.diagonal, runs.pivot)
         return runs
 
     def _each_run(self, kernel, *vectors) -> np.ndarray:
@@ -105,7 +115,7 @@ class RowRuns:
         def run(t):
             lo, hi = self.runs[t]
             out = np.empty(hi - lo)
-            kernel(self.indptr, self.indices, self.A.data, *vectors, np.uint64(lo), np.uint64(hi), out)
+            kernel(self.indptr, self.indices, self.data, *vectors, np.uint64(lo), np.uint64(hi), out)
             return out
 
         threads = torch.get_num_threads() if len(self.runs) > 1 else 1
@@ -121,9 +131,11 @@ class RowRuns:
         """M^-1 b: a forward sweep from x = 0."""
         return self._each_run(_forward_from_zero, self.diagonal, self.pivot, b)
 
-    def residual(self, x: np.ndarray, b: np.ndarray) -> np.ndarray:
-        """b - A x."""
-        return self._each_run(_residual, x, b)
+    def residual_after_pre(self, x: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """b - A x for x = ``pre(b)``: in a run, b_i - sum_{lo <= j < i} a_ij x_j = p_i x_i (the
+        forward sweep), so the row's entries from the run's start to its diagonal are not read
+        again (half of each row)."""
+        return self._each_run(_residual_after_pre, self.diagonal, self.pivot, x, b)
 
     def post(self, x: np.ndarray, b: np.ndarray) -> np.ndarray:
         """x + M^-T (b - A x): a backward sweep from x."""
@@ -185,11 +197,22 @@ if numba is not None:
             out[r] = (acc + (pivot[i] - data[d]) * x[i]) / pivot[i]  # x + M^-T (b - A x), M's l1 term on x
 
     @bond_loops.fast_kernel
-    def _residual(indptr, indices, data, x, b, lo, hi, out):  # pragma: no cover - compiled
+    def _residual_after_pre(indptr, indices, data, diagonal, pivot, x, b, lo, hi, out):  # pragma: no cover - compiled
         for r in range(hi - lo):
-            i = lo + r
-            acc = b[i]
-            for k in range(indptr[i], indptr[i + 1]):
+            i, d = lo + r, diagonal[lo + r]
+            start, end = indptr[i], indptr[i + 1]
+            if d == NONE or data[d] == 0.0:  # no sweep on this row: all of it
+                acc = b[i]
+                for k in range(start, end):
+                    acc -= data[k] * x[indices[k]]
+                out[r] = acc
+                continue
+            acc = (pivot[i] - data[d]) * x[i]
+            k = start
+            while indices[k] < lo:  # columns left of the run
+                acc -= data[k] * x[indices[k]]
+                k += 1
+            for k in range(d + 1, end):
                 acc -= data[k] * x[indices[k]]
             out[r] = acc
 

@@ -35,6 +35,11 @@ def bond_operator():
     return p, asm, num, pair_operator(num, asm.free_index)
 
 
+def rounded(A):
+    """A with its entries rounded to single precision (what the default smoother reads)."""
+    return sp.csr_matrix((A.data.astype(np.float32).astype(np.float64), A.indices, A.indptr), shape=A.shape)
+
+
 def block_reference(A, b, x, runs, forward):
     """One l1 hybrid sweep by dense algebra: x + (D + D_l1 + L_run)^-1 (b - A x) per run
     (forward), (D + D_l1 + U_run)^-1 (backward), L_run / U_run the strict triangles inside the
@@ -52,9 +57,10 @@ def block_reference(A, b, x, runs, forward):
 def test_one_sweep_is_gauss_seidel_inside_each_run_and_jacobi_between(bond_operator):
     """pre(b) = blockdiag(D + D_l1 + L)^-1 b and post(x, b) = x + blockdiag(D + D_l1 + U)^-1 (b - A x) to
     1e-12 relative (triangular solves of a diagonally dominant-ish SPD matrix: a few ulp times
-    the row length)."""
+    the row length), A's entries rounded to single precision; the residual after the pre-sweep b - A x."""
     *_, A = bond_operator
     smooth = RowRuns.smoother(A)
+    A = rounded(A)
     assert len(smooth.runs) == 2
     rng = np.random.default_rng(0)
     b, x = rng.standard_normal(A.shape[0]), rng.standard_normal(A.shape[0])
@@ -62,7 +68,8 @@ def test_one_sweep_is_gauss_seidel_inside_each_run_and_jacobi_between(bond_opera
     post = block_reference(A, b, x, smooth.runs, False)
     np.testing.assert_allclose(smooth.pre(b), pre, rtol=0, atol=1e-12 * np.abs(pre).max())
     np.testing.assert_allclose(smooth.post(x, b), post, rtol=0, atol=1e-12 * np.abs(post).max())
-    np.testing.assert_allclose(smooth.residual(x, b), b - A @ x, rtol=0, atol=1e-12 * np.abs(b - A @ x).max())
+    x = smooth.pre(b)
+    np.testing.assert_allclose(smooth.residual_after_pre(x, b), b - A @ x, rtol=0, atol=1e-12 * np.abs(b).max())
 
 
 def test_the_product_is_scipys_for_vectors_and_columns():
@@ -119,7 +126,7 @@ def test_one_run_is_pyamgs_sweep(bond_operator, monkeypatch):
     its backward sweep, to 1e-12 relative (the compiled loop sums a row in another order)."""
     monkeypatch.setattr(row_runs, "RUNS", 1)
     *_, A = bond_operator
-    smooth = RowRuns.smoother(A)
+    smooth = RowRuns.smoother(A, single=False)
     assert smooth.runs == [(0, A.shape[0])]
     rng = np.random.default_rng(1)
     b, x = rng.standard_normal(A.shape[0]), rng.standard_normal(A.shape[0])
@@ -128,6 +135,22 @@ def test_one_run_is_pyamgs_sweep(bond_operator, monkeypatch):
     amg_core.gauss_seidel(A.indptr, A.indices, A.data, backward, b, A.shape[0] - 1, -1, -1)
     np.testing.assert_allclose(smooth.pre(b), forward, rtol=0, atol=1e-12 * np.abs(forward).max())
     np.testing.assert_allclose(smooth.post(x, b), backward, rtol=0, atol=1e-12 * np.abs(backward).max())
+
+
+def test_single_precision_sweeps_are_the_double_sweeps_of_the_rounded_matrix(bond_operator):
+    """The default smoother reads A's entries in single precision and computes in double: the
+    same bits as the double smoother of A rounded to single; a diagonal outside single's range
+    (1e-30, 1e30) keeps A's own entries."""
+    *_, A = bond_operator
+    single, double = RowRuns.smoother(A), RowRuns.smoother(rounded(A), single=False)
+    assert single.data.dtype == np.float32 and double.data.dtype == np.float64
+    b, x = np.random.default_rng(6).standard_normal((2, A.shape[0]))
+    assert np.array_equal(single.pre(b), double.pre(b)) and np.array_equal(single.post(x, b), double.post(x, b))
+    x = single.pre(b)
+    assert np.array_equal(single.residual_after_pre(x, b), double.residual_after_pre(x, b))
+    d = A.diagonal()
+    for scale in (1e-31 / d.min(), 1e31 / d.max()):
+        assert RowRuns.smoother(scale * A).data.dtype == np.float64
 
 
 def test_a_row_without_diagonal_keeps_its_value():
@@ -139,6 +162,8 @@ def test_a_row_without_diagonal_keeps_its_value():
     b, x = np.array([1.0, 2.0, 3.0]), np.array([0.5, 7.0, -1.0])
     np.testing.assert_allclose(smooth.pre(b), [0.25, 0.0, (3.0 - 0.25) / 3.0], rtol=1e-15)
     np.testing.assert_allclose(smooth.post(x, b), [(1.0 - 2.5 / 3.0) / 4.0, 7.0, 2.5 / 3.0], rtol=1e-15)
+    x = smooth.pre(b)
+    np.testing.assert_allclose(smooth.residual_after_pre(x, b), b - A @ x, rtol=0, atol=1e-15)
 
 
 def test_the_cycle_is_symmetric_and_the_same_bits_on_one_thread_or_two(bond_operator):
