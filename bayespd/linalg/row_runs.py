@@ -74,22 +74,27 @@ os.register_at_fork(before=lambda: _WARM and _WARM[0].join(), after_in_child=_WA
 
 def _load():
     identity, b = sp.identity(2, format="csr"), np.ones(2)
-    runs = RowRuns.smoother(identity)  # single-precision entries, as the sweeps read them
-    x = runs.pre(RowRuns(identity).product(b))
-    runs.post(x, runs.residual_after_pre(x, b))
+    runs = RowRuns.smoother(identity)  # single-precision entries (the sweeps, rho's products)
+    x = runs.pre(runs.product(b))
+    runs.post(x, runs.residual_after_pre(x, RowRuns(identity).product(b)))
 
 
 class RowRuns:
     """A CSR matrix A (n x m) in runs of rows (at most ``RUNS``, each at least ``MIN_ROWS`` and
     ``shortest`` rows long): ``product``, and for ``smoother``'s runs the sweeps ``pre``,
-    ``residual_after_pre``, ``post``."""
+    ``residual_after_pre``, ``post``; ``single``: its entries read in single precision where
+    A's diagonal lies in single's range (``SINGLE_RANGE``; vectors and sums stay double)."""
 
-    def __init__(self, A, shortest: int | None = None):
+    def __init__(self, A, shortest: int | None = None, single: bool = False):
         self.A = A
         # unsigned views of the index arrays (the module docstring)
         unsigned = np.uint32 if A.indices.dtype == np.int32 else np.uint64
         self.indptr, self.indices = A.indptr.view(unsigned), A.indices.view(unsigned)
         self.data = A.data
+        if single:  # where the diagonal lies in single's range (a square A's: its entries are bounded by it)
+            d = np.abs(A.diagonal())
+            if d.max(initial=0.0) < SINGLE_RANGE[1] and d[d > 0].min(initial=np.inf) > SINGLE_RANGE[0]:
+                self.data = A.data.astype(np.float32)
         n = A.shape[0]
         count = max(1, min(RUNS, n // max(MIN_ROWS, shortest or 0)))
         cuts = [n * t // count for t in range(count + 1)]
@@ -98,17 +103,12 @@ class RowRuns:
     @classmethod
     def smoother(cls, A, single: bool = True) -> RowRuns:
         """The runs of A with sorted indices (A itself when sorted), each ``BANDWIDTHS`` of A's
-        bandwidths long at least, its diagonal located and the l1 pivots computed. ``single``:
-        the sweeps read A's entries rounded to single precision where its diagonal
-        lies in single's range (the vectors and sums stay double)."""
+        bandwidths long at least, its diagonal located and the l1 pivots computed; by default
+        its entries read in single precision."""
         A = A if A.has_sorted_indices else A.sorted_indices()
         filled = np.flatnonzero(np.diff(A.indptr))
         reach = int(np.max(A.indices[A.indptr[filled + 1] - 1] - filled, initial=0))  # sorted: a row's last column
-        runs = cls(A, BANDWIDTHS * reach)
-        if single:
-            d = np.abs(A.diagonal())
-            if d.max(initial=0.0) < SINGLE_RANGE[1] and d[d > 0].min(initial=np.inf) > SINGLE_RANGE[0]:
-                runs.data = A.data.astype(np.float32)
+        runs = cls(A, BANDWIDTHS * reach, single)
         runs.diagonal = np.empty(A.shape[0], dtype=np.uint64)  # each row's diagonal entry (NONE: none)
         runs.pivot = np.zeros(A.shape[0])  # the l1 pivots a_ii + sum of |a_ij| outside the run
         cuts = np.array([lo for lo, _ in runs.runs] + [A.shape[0]], dtype=np.uint64)
