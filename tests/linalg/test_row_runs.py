@@ -14,6 +14,8 @@ from bayespd import bond_loops
 from bayespd.linalg import row_runs, sparse
 from bayespd.linalg.amg import amg_preconditioner, pair_operator
 from bayespd.linalg.row_runs import RowRuns
+from bayespd.linalg.stiffness_solver import Assembly
+from tests.linalg.linalg_systems import lps_terms
 from tests.linalg.test_amg import clamped
 
 pytestmark = pytest.mark.skipif(bond_loops.numba is None, reason="needs numba (the 'fast' or 'dev' extra)")
@@ -207,3 +209,31 @@ def test_without_the_compiled_loops_the_cycle_is_pyamgs(bond_operator, monkeypat
     monkeypatch.setattr(bond_loops, "ENABLED", False)
     p, asm, num, A = bond_operator
     assert amg_preconditioner(num, asm.free_index, p.x, pair=A).smoothers is None
+
+
+@pytest.mark.parametrize("contrast", [1e3, 1e8])
+def test_single_precision_sweeps_serve_as_double_ones_on_a_stiff_contrast(contrast):
+    """A shear-modulus field spanning ``contrast`` along a clamped plate (K_b's entries over as
+    many decades): PCG preconditioned by the cycle with single-precision sweeps takes the
+    iterations of the double ones (+-1: the sweeps' entries move by 6e-8 relative; the coarse
+    levels are the same) and reaches the direct solution to kappa(K) rtol."""
+    p, bonds, mat, _ = lps_terms(nx=30, ny=12)
+    asm = Assembly(mat.grams(), ~np.repeat(p.layer("left", 2.6), 2))
+    G = torch.as_tensor(1500.0 * contrast ** (p.x[:, 0] / p.x[:, 0].max()))
+    terms = [(g, d.numpy(), w.numpy()) for g, d, w in mat.terms({"K": 2 * G, "G": G, "delta": 2.6})]
+    A = pair_operator(terms, asm.free_index)
+    single = amg_preconditioner(terms, asm.free_index, p.x, pair=A)
+    double = copy.copy(single)
+    double.smoothers = [(RowRuns.smoother(L, single=False), P, R) for L, (_, P, R) in
+                        zip([lv[0] for lv in single.levels], single.smoothers)]
+    assert single.smoothers[0][0].data.dtype == np.float32
+    rhs = np.random.default_rng(7).standard_normal(A.shape[0])
+    matvec = asm.operator(terms, pair=A)
+    solves = [sparse.PCGFactor(matvec, M, A.shape[0], rtol=1e-10) for M in (single, double)]
+    u = solves[0].solve(rhs)
+    solves[1].solve(rhs)
+    assert abs(solves[0].iterations - solves[1].iterations) <= 1, [f.iterations for f in solves]
+    exact = asm.factorize(mat.terms({"K": 2 * G, "G": G, "delta": 2.6}), "direct", backend="splu").solve(rhs)
+    eigenvalues = np.linalg.eigvalsh(matvec(np.identity(A.shape[0])))
+    kappa = eigenvalues[-1] / eigenvalues[0]
+    assert np.linalg.norm(u - exact) <= kappa * 1e-10 * np.linalg.norm(exact)
