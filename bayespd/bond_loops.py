@@ -99,13 +99,15 @@ def shared(kernel, args: tuple, parts: list, shape: tuple, dtype, threads: int) 
     return f
 
 
-def claimed(task, count: int, threads: int) -> list:
+def claimed(task, count: int, threads: int, redo: bool = True) -> list:
     """[task(0), ..., task(count - 1)]: the calling thread and ``threads - 1`` pool threads
     claim the tasks in turn; then the caller does again itself any task that no thread has
     finished: on a busy machine a pool thread that the scheduler has set aside delays nothing
     (where waiting for it costs a time slice), and the caller's extra work is at most the
     tasks that were under way elsewhere. A task may therefore run twice, once late: it must
-    write nothing but its result, or the same bits to arrays of its own call."""
+    write nothing but its result, or the same bits to arrays of its own call. ``redo=False``:
+    each task runs once and the caller waits for those the pool threads claimed (tasks that
+    write into arrays the caller hands on)."""
     results, lock, claim = [None] * count, threading.Lock(), itertools.count()
 
     def attempt(t):
@@ -118,12 +120,13 @@ def claimed(task, count: int, threads: int) -> list:
         while (t := next(claim)) < count:
             attempt(t)
 
-    for _ in range(threads - 1):
-        _pool(threads - 1).submit(work)
+    others = [_pool(threads - 1).submit(work) for _ in range(threads - 1)]
     work()
     for t in range(count):
-        if results[t] is None:
+        if redo and results[t] is None:
             attempt(t)
+    for other in others if not redo else ():
+        other.result()
     return [r[0] for r in results]
 
 

@@ -2,10 +2,11 @@
 scipy's restricted product to rounding, on the free dofs, with sorted indices."""
 import numpy as np
 import pytest
+import torch
 
 import bayespd as bp
 from bayespd import bond_loops
-from bayespd.linalg import amg
+from bayespd.linalg import amg, pair_loops
 from bayespd.linalg.amg import pair_operator
 
 pytestmark = pytest.mark.skipif(bond_loops.numba is None, reason="needs numba (the 'fast' or 'dev' extra)")
@@ -68,8 +69,7 @@ def test_no_bond_rows_is_refused():
 
 def test_a_kept_pattern_gives_a_fresh_assembly_at_new_weights():
     """K_b at a new horizon on the pattern kept from another horizon (``amg.pair_pattern``):
-    bit for bit the K_b assembled afresh (the same loops in the same order), the pattern's
-    own indices left untouched by the zeros a call drops."""
+    bit for bit the K_b assembled afresh (the same loops in the same order)."""
     p = bp.grid_2d(14.0, 9.0, 1.0)
     mat = bp.LPS(p, bp.find_bonds(p, 2.6), plane="stress")
     free = np.flatnonzero(~np.repeat(p.layer("left", 1.0), 2))
@@ -78,10 +78,35 @@ def test_a_kept_pattern_gives_a_fresh_assembly_at_new_weights():
         return [(g, d.numpy(), w.numpy()) for g, d, w in mat.terms({"K": 3000.0, "G": 1500.0, "delta": delta})]
 
     pattern = amg.pair_pattern(terms(2.6), free)
-    indices = pattern.indices.copy()
     for delta in (2.6, 1.7):
         K, fresh = pair_operator(terms(delta), free, pattern), pair_operator(terms(delta), free)
         assert np.array_equal(K.indptr, fresh.indptr) and np.array_equal(K.indices, fresh.indices)
         assert np.array_equal(K.data, fresh.data)
-        assert np.array_equal(pattern.indices, indices)
     assert K.nnz < pair_operator(terms(2.6), free).nnz  # fewer nonzero bonds at 1.7: zeros dropped
+
+
+@pytest.mark.parametrize("runs, threads", [(1, 1), (8, 2), (5, 2)])
+def test_runs_and_threads_change_no_bit(runs, threads, monkeypatch):
+    """K_b summed in one run on one thread, in 8 or 5 runs of particles on two: the same bits
+    (each entry is summed over its bond rows in row order, whatever run holds its particle)."""
+    p = bp.grid_2d(60.0, 40.0, 1.0)
+    mat = bp.LPS(p, bp.find_bonds(p, 2.6), plane="stress", surface_correction=True)
+    terms = [(g, d.numpy(), w.numpy()) for g, d, w in mat.terms({"K": 3000.0, "G": 1500.0, "delta": 2.6})]
+    free = np.flatnonzero(~np.repeat(p.layer("left", 1.0), 2))
+    reference = pair_operator(terms, free)
+    monkeypatch.setattr(pair_loops, "RUNS", runs)
+    monkeypatch.setattr(pair_loops, "MIN_INCIDENCES", 1)
+    monkeypatch.setattr(torch, "get_num_threads", lambda: threads)
+    pattern = amg.pair_pattern(terms, free)
+    assert len(pattern.runs) == runs
+    K = pair_operator(terms, free, pattern)
+    assert np.array_equal(K.indptr, reference.indptr) and np.array_equal(K.indices, reference.indices)
+    assert np.array_equal(K.data, reference.data)
+
+
+def test_free_dofs_out_of_order_are_refused():
+    p = bp.grid_2d(4.0, 4.0, 1.0)
+    mat = bp.BondBased(p, bp.find_bonds(p, 1.5), plane="stress")
+    terms = [(g, d.numpy(), w.numpy()) for g, d, w in mat.terms({"K": 3000.0, "delta": 1.5})]
+    with pytest.raises(ValueError, match="increasing"):
+        amg.pair_operator(terms, np.arange(2 * p.n)[::-1])
