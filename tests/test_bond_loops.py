@@ -283,3 +283,32 @@ def test_a_share_that_no_thread_finished_is_done_by_the_caller(threads, monkeypa
     f = bond_loops.pmb_force(u, reverse, xi.flip(1).contiguous(), length.flip(0).contiguous(), k, None)
     assert len(bond_loops.shares(reverse, 16)) == 16
     np.testing.assert_allclose(f.numpy(), serial.numpy(), rtol=0, atol=8 * np.finfo(float).eps * float(serial.abs().max()))
+
+
+@pytest.mark.parametrize("redo", [True, False])
+def test_claimed_redoes_a_stalled_task_or_waits_for_it(redo):
+    """A task that stalls on a pool thread (0.3 s; the caller's first task waits until the pool
+    thread holds one) is done again by the caller (``redo``: run twice) or waited for (each
+    task run exactly once, all finished at return)."""
+    import time
+
+    runs, finished, lock, pool_busy = [0] * 4, [False] * 4, threading.Lock(), threading.Event()
+
+    def task(t):
+        with lock:
+            runs[t] += 1
+            first = runs[t] == 1
+        if threading.current_thread() is threading.main_thread():
+            assert pool_busy.wait(5.0), "the pool thread never claimed a task"
+        elif first:
+            pool_busy.set()
+            time.sleep(0.3)
+        finished[t] = True
+        return t * t
+
+    assert bond_loops.claimed(task, 4, 2, redo=redo) == [0, 1, 4, 9]
+    if redo:
+        assert sum(runs) == 5  # the stalled task run again by the caller
+        time.sleep(0.4)  # let the late run end before the next test
+    else:
+        assert runs == [1, 1, 1, 1] and all(finished)
