@@ -81,6 +81,8 @@ class Material(ABC):
         """omega(|xi|, delta) * beta(delta) per bond; refuses particles left without a family."""
         delta = params["delta"]
         w = self.influence(self.length, delta, params) * self.bonds.weight(delta)
+        if self._every_particle_bonded and bool(torch.all(w != 0)):
+            return w  # every family holds a bond of nonzero weight (volumes are positive)
         V = self.volume
         family = torch.zeros(self.particles.n, dtype=w.dtype).index_add(
             0, self.i, w.abs() * V.index_select(0, self.j)).index_add(0, self.j, w.abs() * V.index_select(0, self.i))
@@ -89,6 +91,10 @@ class Material(ABC):
             raise ValueError(f"particle {k} at {self.particles.x[k].tolist()} has an empty family "
                              "at this horizon: increase delta or remove isolated particles")
         return w
+
+    @cached_property
+    def _every_particle_bonded(self) -> bool:
+        return bool(np.all(np.bincount(np.concatenate([self.bonds.i, self.bonds.j]), minlength=self.particles.n)))
 
     def lattice_weight(self, r: torch.Tensor, params: dict) -> torch.Tensor:
         """omega * beta of the bonds of length r of ``lattice_family``."""

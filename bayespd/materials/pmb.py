@@ -16,6 +16,7 @@ depends on its own extension only (``pairwise``); damage scales its stiffness by
 from __future__ import annotations
 
 import math
+from functools import cached_property
 
 import torch
 
@@ -49,8 +50,12 @@ class BondBased(Material):
         """k_b = c_b w_b V_i V_j / |xi| per bond (before the surface factor and damage)."""
         c = self.micromodulus(moduli["K"], params)
         c_b = 0.5 * (c[self.i] + c[self.j])
-        w = self.bond_weight(params)
-        return c_b * w * self.volume[self.i] * self.volume[self.j] / self.length
+        return c_b * self.bond_weight(params) * self._volumes_over_length
+
+    @cached_property
+    def _volumes_over_length(self) -> torch.Tensor:
+        """V_i V_j / |xi| per bond (fixed by the particles)."""
+        return self.volume[self.i] * self.volume[self.j] / self.length
 
     def term_coefficients(self, moduli):
         """(K,): the micromodulus, and with it every bond stiffness, is linear in K."""
