@@ -38,6 +38,14 @@ def _group_ids(counts: np.ndarray) -> np.ndarray:
     return out
 
 
+def _read_only(*arrays) -> tuple:
+    """Views of ``arrays`` that refuse writes (shared by every caller)."""
+    views = tuple(a.view() for a in arrays)
+    for a in views:
+        a.flags.writeable = False
+    return views
+
+
 class Gram:
     """K = A^T diag(w) A for A with entries at (rows[k], cols[k]) and data given per call."""
 
@@ -81,6 +89,7 @@ class Gram:
         g.cols, g.shape, g.block = cols, (R, n_cols), block
         g.indptr = np.arange(0, R * k * block + 1, k * block, dtype=np.int64)
         g._nodes = torch.as_tensor(nodes.reshape(-1))  # the products gather whole nodes
+        g._block_parts = _read_only(nodes.reshape(-1), np.arange(0, R * k + 1, k, dtype=np.int64))  # given
         return g
 
     @cached_property
@@ -199,10 +208,7 @@ class Gram:
     @cached_property
     def _block_parts(self):
         b = self.block
-        parts = self.cols[::b] // b, self.indptr // b
-        for a in parts:
-            a.flags.writeable = False
-        return parts
+        return _read_only(self.cols[::b] // b, self.indptr // b)
 
     def _block_data(self, data, w=None) -> np.ndarray:
         """diag(w) A's entries in row-major order, as (nnz / b, 1, b) blocks."""
