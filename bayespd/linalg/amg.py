@@ -225,7 +225,7 @@ def cell_aggregates(positions: np.ndarray, i: np.ndarray, j: np.ndarray,
     x = np.asarray(positions, dtype=np.float64)
     if len(i) == 0:
         raise ValueError("no bonds with a positive weight to aggregate the particles by")
-    xi = x[j] - x[i]
+    xi = np.take(x, j, axis=0) - np.take(x, i, axis=0)
     squared = np.einsum("bk,bk->b", xi, xi)
     h, r = float(np.sqrt(squared.min())), float(np.sqrt(squared.max()))
     side = h * np.floor(3 * r / h)
