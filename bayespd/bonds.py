@@ -10,6 +10,7 @@ from matplotlib.path import Path
 from scipy.spatial import cKDTree
 
 from bayespd.discretize import Particles
+from bayespd.linalg.page_advice import without_huge_pages
 from bayespd.validate import finite
 
 
@@ -49,6 +50,7 @@ class Bonds:
 RULES = ("linear", "smooth")  # partial-volume ramps in delta (see partial_volume)
 
 
+@without_huge_pages()
 def find_bonds(particles: Particles, delta_max: float, rule: str = "linear") -> Bonds:
     """All pairs closer than ``delta_max + h/2``, found once with a k-d tree; ``rule``: the
     partial-volume ramp in delta (see :func:`partial_volume`)."""

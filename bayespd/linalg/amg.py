@@ -36,6 +36,7 @@ from pyamg import amg_core
 from bayespd import bond_loops
 from bayespd.linalg import pair_loops, row_runs
 from bayespd.linalg.assembly import to_numpy
+from bayespd.linalg.page_advice import without_huge_pages
 from bayespd.linalg.row_runs import RowRuns
 
 
@@ -76,6 +77,7 @@ def pair_rows(g, w) -> np.ndarray:
     return two[np.asarray(w)[two] >= 0]
 
 
+@without_huge_pages()
 def pair_operator(terms, free_index: np.ndarray, pattern=None) -> sp.csr_matrix:
     """K_b on the free dofs: the ``pair_rows`` of every (gram, data, w) term (sorted indices);
     by compiled loops where numba is installed (``pair_loops``; on ``pattern``, from
@@ -101,6 +103,7 @@ def pair_operator(terms, free_index: np.ndarray, pattern=None) -> sp.csr_matrix:
     return K
 
 
+@without_huge_pages()
 def pair_pattern(terms, free_index: np.ndarray):
     """K_b's pattern for ``terms`` (``pair_loops.PairPattern``), to assemble K_b at other
     weights of the same rows; None where numba is not installed."""
@@ -240,6 +243,7 @@ def cell_aggregates(positions: np.ndarray, i: np.ndarray, j: np.ndarray,
     return sp.csr_matrix((np.ones(len(rows)), (rows, aggregate)), shape=(len(rows), aggregate.max() + 1))
 
 
+@without_huge_pages()
 def v_cycle(K: sp.csr_matrix, modes: np.ndarray, aggregates=None, hybrid: bool = True) -> VCycle:
     """The V-cycle of smoothed aggregation on an SPD matrix K with near-null space ``modes``
     (its rigid-body modes, for elasticity); ``aggregates``: the finest level's (default:

@@ -35,6 +35,7 @@ from bayespd.bonds import Bonds, partial_volume
 from bayespd.discretize import Particles
 from bayespd.influence import Constant, Influence
 from bayespd.linalg.assembly import Gram, numeric_values, union_pattern
+from bayespd.linalg.page_advice import without_huge_pages
 from bayespd.materials.checks import check_modulus
 from bayespd.nonlinear import product
 from bayespd.surface import bond_factors
@@ -52,6 +53,7 @@ class Material(ABC):
     moduli_names: tuple[str, ...] = ()
     pairwise: bool = False
 
+    @without_huge_pages()
     def __init__(self, particles: Particles, bonds: Bonds, plane: str = "stress",
                  influence: Influence | None = None, surface_correction: bool = False):
         if plane not in ("stress", "strain"):
