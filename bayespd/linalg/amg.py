@@ -178,10 +178,15 @@ class VCycle:
     def _hybrid_cycle(self, k: int, B: np.ndarray) -> np.ndarray:
         """``_cycle`` with the hybrid Gauss-Seidel of ``row_runs`` (two threads)."""
         smooth, P, R = self.smoothers[k]
-        X = np.stack([smooth.pre(b) for b in B])
-        coarse = np.stack([R.product(smooth.residual_after_pre(x, b)) for x, b in zip(X, B)])
-        X += np.stack([P.product(e) for e in self._cycle(k + 1, coarse)])
-        return np.stack([smooth.post(x, b) for x, b in zip(X, B)])
+        X = _rows([smooth.pre(b) for b in B])
+        coarse = _rows([R.product(smooth.residual_after_pre(x, b)) for x, b in zip(X, B)])
+        X += _rows([P.product(e) for e in self._cycle(k + 1, coarse)])
+        return _rows([smooth.post(x, b) for x, b in zip(X, B)])
+
+
+def _rows(vectors: list) -> np.ndarray:
+    """``np.stack(vectors)``, a view for one vector (a V-cycle's usual right-hand side)."""
+    return vectors[0][None] if len(vectors) == 1 else np.stack(vectors)
 
 
 def amg_preconditioner(terms, free_index: np.ndarray, positions: np.ndarray,
