@@ -32,7 +32,7 @@ from scipy.optimize import minimize
 from bayespd.learn.dispersion import _ENTRY_SCALE, _symmetric
 
 _MIRRORS = ((1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0))
-_LOG_BOUNDS = ((-12.0, 3.0),) * 4 + ((-3.0, 1.4),)  # log a, l, eta, g; log p (p in 0.05-4)
+_LOG_BOUNDS = ((-12.0, 3.0),) * 4 + ((-3.0, 3.0),)  # log a, l, eta, g; log p (p in 0.05-20)
 
 
 class WaveGP(NamedTuple):
@@ -109,7 +109,9 @@ def log_marginal(log_hyper: torch.Tensor, kh, Delta, off, measurement: float) ->
 def fit_wave_gp(kh, Delta, off_diagonal, measurement: float, growing: bool = False,
                 start: WaveGP = WaveGP(0.05, 0.5, 0.01, 0.02, 1.0)) -> WaveGP:
     """a, l, eta (``growing``: and g, p) maximising ``log_marginal`` (L-BFGS on their logarithms,
-    from ``start``), the sds of their logarithms from the inverse Hessian there, and the maximum."""
+    from ``start``, within ``_LOG_BOUNDS``), the sds of their logarithms from the inverse Hessian
+    there (NaN for one at its bound: eta -> 0 where the measurement error holds the white part),
+    and the maximum."""
     kh, Delta, off = _check(kh, Delta, off_diagonal)
     count = 5 if growing else 3
 
@@ -122,16 +124,19 @@ def fit_wave_gp(kh, Delta, off_diagonal, measurement: float, growing: bool = Fal
     x0 = np.log(start[:count])
     result = minimize(objective, x0, jac=True, method="L-BFGS-B", bounds=_LOG_BOUNDS[:count],
                       options={"maxiter": 1000, "gtol": 1e-9})
+    lower, upper = np.array(_LOG_BOUNDS[:count]).T
+    free = (result.x > lower + 1e-6) & (result.x < upper - 1e-6)  # a bound is an answer (eta -> 0: no white term)
     step = 1e-4  # central differences of the exact gradient: a relative error of about step^2
-    columns = [objective(result.x + step * e)[1] - objective(result.x - step * e)[1] for e in np.eye(count)]
-    hessian = torch.as_tensor(np.array(columns) / (2 * step))
+    columns = [objective(result.x + step * e)[1] - objective(result.x - step * e)[1] for e in np.eye(count)[free]]
+    hessian = torch.as_tensor(np.array(columns)[:, free] / (2 * step))
     hessian = (hessian + hessian.T) / 2
     if not result.success or bool((torch.linalg.eigvalsh(hessian) <= 0).any()):
-        raise ValueError(f"the GP's marginal likelihood has no interior maximum ({result.message}, Hessian "
+        raise ValueError(f"the GP's marginal likelihood has no maximum ({result.message}, Hessian "
                          f"{hessian.tolist()}): give the errors of more orbits, another start, or a stationary GP "
                          f"(growing=False) where the errors do not grow with |k| h")
-    sd = tuple(torch.linalg.inv(hessian).diagonal().sqrt().tolist())
-    return WaveGP(*np.exp(result.x).tolist(), log_sd=sd, log_marginal=-float(result.fun))
+    sd = np.full(count, np.nan)
+    sd[free] = torch.linalg.inv(hessian).diagonal().sqrt().numpy()
+    return WaveGP(*np.exp(result.x).tolist(), log_sd=tuple(sd.tolist()), log_marginal=-float(result.fun))
 
 
 def conditional(gp: WaveGP, kh, Delta, off_diagonal, measurement: float, new) -> list[tuple[torch.Tensor, torch.Tensor]]:
@@ -164,19 +169,21 @@ def draw_errors(gp: WaveGP, kh, Delta, off_diagonal, measurement: float, new, ge
 
 
 def frame_extrapolation(modes, kh, Delta, off_diagonal, measurement: float, growing: bool = False,
-                        frame: int | None = None) -> torch.Tensor:
+                        frame: int | None = None, gp: WaveGP | None = None) -> torch.Tensor:
     """The z-scores of the frame ``frame`` of training orbits (max(n1, n2) = ``frame``, default the
-    largest; ``modes`` (O, 2)) under the GP (``growing`` as ``fit_wave_gp``) fitted to the orbits
-    inside it alone: (Delta_e - mean) / sd of the predictive f + eps + measurement, every observed
-    entry. Their rms is 1 where the GP extrapolates one lattice step as its law says; it measures
-    how far the errors outgrow it from the data alone."""
+    largest; ``modes`` (O, 2)) under the GP conditioned on the orbits inside it alone, with the
+    hyperparameters ``gp`` or (None) those fitted to those orbits (``growing`` as ``fit_wave_gp``):
+    (Delta_e - mean) / sd of the predictive f + eps + measurement, every observed entry. Their rms
+    is 1 where the GP extrapolates one lattice step as its law says; it measures how far the errors
+    outgrow it from the data alone (a growth that only the outer frame shows needs ``gp`` fitted
+    to every frame: the inner ones alone do not identify it)."""
     kh, Delta, off = _check(kh, Delta, off_diagonal)
     level = torch.as_tensor(np.asarray(modes)).max(1).values
     frame = int(level.max()) if frame is None else frame
     inner, outer = level < frame, level == frame
     if not bool(outer.any()):
         raise ValueError(f"no training orbit has max(n1, n2) = {frame}: pick a frame of the training set")
-    gp = fit_wave_gp(kh[inner], Delta[inner], off[inner], measurement, growing)
+    gp = fit_wave_gp(kh[inner], Delta[inner], off[inner], measurement, growing) if gp is None else gp
     z = []
     for (mean, cov), (value, held, _, w) in zip(conditional(gp, kh[inner], Delta[inner], off[inner], measurement,
                                                             kh[outer]), _entries(Delta[outer], off[outer])):
