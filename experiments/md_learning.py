@@ -40,7 +40,8 @@ from bayespd.learn.coarse_grain import coarse_grain
 from bayespd.learn.discrepancy import learn_s0, relative_error
 from bayespd.learn.dispersion import (common_offset_posterior, common_offset_prior, error_field, measured_compliance,
                                       off_orbit_response, orbit_error_posterior, orbit_errors_on_lattice,
-                                      relative_compliance_error, shell_of, unheld_response, wave_power_share)
+                                      relative_compliance_error, shell_of, unheld_response, unheld_response_sd,
+                                      wave_power_share)
 from bayespd.learn.kernel import UnsolvableKernel, learn_kernel, lps_params, relative_errors
 from bayespd.learn.kernel_shape import KernelShape
 from bayespd.learn.moduli import long_wave_moduli
@@ -222,12 +223,12 @@ def bayes(best, data, md_moduli, quick, structured=True):
     training compliances, plus the predicted record's own measurement error; at the waves without a
     training orbit the error drawn from bayespd.learn.wave_gp's GP (amplitude growing in |k| h)
     conditional given the training orbits', widened by its frame test, on the training waves the
-    shells' draw; plus the response no compliance holds, white, of the training records' rms
-    off-orbit size sigma_m; for comparison the same without that floor, the stationary GP widened
-    by its own frame test (the previous default), the shells' draw everywhere, the offset from its
-    prior N(0, tau^2), the training waves' own model errors fixed at their conditional given the
-    draw's measured ones, and the growing GP everywhere as fitted); their node coverage and width;
-    whether the 90 %
+    shells' draw; plus the response no compliance holds, white, of the training records' off-orbit
+    size on the shells of |k| h the load excites (``unheld_response_sd``); for comparison the same
+    without that floor, the stationary GP widened by its own frame test (the previous default), the
+    shells' draw everywhere, the offset from its prior N(0, tau^2), the training waves' own model
+    errors fixed at their conditional given the draw's measured ones, and the growing GP everywhere
+    as fitted); their node coverage and width; whether the 90 %
     intervals of the 2D moduli hold the MD sheet's."""
     sheet = data["sheet"]
     f, u = data["train"]
@@ -279,6 +280,7 @@ def bayes(best, data, md_moduli, quick, structured=True):
         quadrant = np.array([(i, j) for i in range(n // 2 + 1) for j in range(n // 2 + 1) if i or j])
         k_quadrant, waves = torch.as_tensor(quadrant * 2 * np.pi / sheet.box), torch.Generator().manual_seed(2)
         new = ~(quadrant[:, None] == modes[None]).all(-1).any(1)  # the waves without a training orbit
+        unheld = unheld_response_sd(f, y, fv, shell, n, len(SHELLS) + 1)  # training records only
     pred, bare, still, shells, fresh, pinned, smooth, inadmissible = [], [], [], [], [], [], [], 0
     t = time.perf_counter()
     for k in range(len(draws["mu"])):  # every draw: the 5-95 % quantiles of n draws hold a new draw of the same law
@@ -299,7 +301,7 @@ def bayes(best, data, md_moduli, quick, structured=True):
                     error = error_field(S_all, fv, s_k[shell], offset, n, waves, measurement=sigma_m,
                                         known=orbit_errors_on_lattice(quadrant[new], field, n)).numpy()
                     bare.append(mean + error)
-                    error = unheld_response(torch.as_tensor(mean + error), sigma_m, waves).numpy() - mean
+                    error = unheld_response(torch.as_tensor(mean + error), unheld, waves).numpy() - mean
                     field = offset + draw_errors(stationary["gp"], k_train * h, Delta - offset, off, sigma_m,
                                                  k_quadrant[new] * h, compare, stationary["inflation"])
                     still.append(mean + error_field(S_all, fv, s_k[shell], offset, n, compare, measurement=sigma_m,
@@ -333,9 +335,9 @@ def bayes(best, data, md_moduli, quick, structured=True):
         return {"node_coverage": float(inside.mean()), "load_node_coverage": inside.mean(1).tolist(),
                 "width_rel": float(((hi - lo) / s_[:, None, None]).mean()), **widen}
 
-    at, bands = 0, {}
+    at, bands, ranges = 0, {}, {}
     for name, (fs, _) in sets.items():
-        rows = slice(at, at + len(fs))
+        rows = ranges[name] = slice(at, at + len(fs))
         at += len(fs)
         bands[name] = {"default": band(pred, rows)}
         if structured:
@@ -352,7 +354,7 @@ def bayes(best, data, md_moduli, quick, structured=True):
                            "+ measurement error" if structured else "nodal iid relative noise"),
             "measurement_error": {"sd": sigma_m, "off_orbit_response": harmonics.tolist(),
                                   "off_orbit_response_median": float(harmonics.median())} if structured else None,
-            "unheld_response_sd": sigma_m if structured else None,
+            "unheld_response_sd": {name: unheld[rows].tolist() for name, rows in ranges.items()} if structured else None,
             "wave_gp": {"growing": _gp_summary(gp), "stationary": _gp_summary(stationary),
                         "log_evidence_growing_minus_stationary": gp["gp"].log_marginal - stationary["gp"].log_marginal,
                         "fit_wall_time_s": gp_wall} if structured else None,

@@ -95,18 +95,49 @@ def off_orbit_response(forces: torch.Tensor, y: torch.Tensor, n: int) -> torch.T
     return torch.stack(out)
 
 
-def unheld_response(records: torch.Tensor, sd: float, generator: torch.Generator) -> torch.Tensor:
+def shell_power_share(forces: torch.Tensor, shell: torch.Tensor, n: int, shells: int) -> torch.Tensor:
+    """The fraction (loads, shells) of each load's power (|f_hat|^2, both components, k != 0) on each
+    shell of |k| h; ``shell`` (n * n - 1,): the shell of each of ``PeriodicSheet.wavevectors``
+    (``shell_of``), ``forces`` (loads, n * n, 2), nodes x-major."""
+    power = torch.fft.fft2(torch.as_tensor(forces).reshape(-1, n, n, 2), dim=(1, 2)).abs().pow(2).sum(-1)
+    power = power.reshape(len(power), -1)[:, 1:]
+    share = torch.zeros(len(power), shells, dtype=power.dtype).index_add(1, torch.as_tensor(shell), power)
+    return share / share.sum(1, keepdim=True)
+
+
+def unheld_response_sd(forces: torch.Tensor, y: torch.Tensor, loads: torch.Tensor, shell: torch.Tensor, n: int,
+                       shells: int) -> torch.Tensor:
+    """The unheld response's sd (loads,) for the records of ``loads`` (m, n * n, 2), from the training
+    records' ``off_orbit_response`` r_t (sinusoidal ``forces`` and responses ``y``, (T, n * n, 2)),
+    which grows with |k| h (about linearly on the MD sheet): per shell b of |k| h (``shell`` as
+    ``shell_power_share``) the training loads' power-weighted mean square s_b^2 = sum_t P_tb r_t^2 /
+    sum_t P_tb, then sd_m^2 = sum_b P_mb s_b^2 with P the shell power shares; a shell no training
+    load reaches is refused."""
+    r = off_orbit_response(forces, y, n)
+    train = shell_power_share(forces, shell, n, shells)
+    weight = train.sum(0)
+    share = shell_power_share(loads, shell, n, shells)
+    empty = (weight < 1e-9 * weight.sum()) & (share.max(0).values > 1e-9)  # 1e-9: above the FFT's rounding
+    if bool(empty.any()):
+        raise ValueError(f"no training load reaches the shells {empty.nonzero().flatten().tolist()} of |k| h that the "
+                         f"loads excite: add training waves there or merge the shells")
+    return (share @ ((train.T @ r.pow(2)) / weight.clamp(min=1e-300))).sqrt()  # a rounding-empty shell: share ~ 0
+
+
+def unheld_response(records: torch.Tensor, sd, generator: torch.Generator) -> torch.Tensor:
     """``records`` (loads, N, 2) plus the response no compliance holds (``off_orbit_response``: the
-    sheet's harmonics and the coarse graining's leakage), drawn white: N(0, (sd r_m)^2) at every node
-    and component, r_m the rms of record m over its nodes and components. White noise puts a share
-    4 / N of its power on one orbit, so the draw's off-orbit response is sd (1 - O(1 / N)): the
-    training records' rms ``off_orbit_response`` is the sd that reproduces their own. It gives the
-    band a floor where a relative compliance error gives none (a load's zero crossings)."""
-    if not sd >= 0:
-        raise ValueError(f"the unheld response's sd must be non-negative (a relative size), got {sd}")
+    sheet's harmonics and the coarse graining's leakage), drawn white: N(0, (sd_m r_m)^2) at every
+    node and component, r_m the rms of record m over its nodes and components, ``sd`` a number or
+    (loads,) (``unheld_response_sd``). White noise puts a share 4 / N of its power on one orbit, so
+    the draw's off-orbit response is sd (1 - O(1 / N)): the training records' ``off_orbit_response``
+    is the sd that reproduces their own. It gives the band a floor where a relative compliance
+    error gives none (a load's zero crossings, the cross component of an axis wave)."""
     records = torch.as_tensor(records)
-    scale = records.pow(2).mean((-2, -1), keepdim=True).sqrt()
-    return records + sd * scale * torch.randn(records.shape, dtype=records.dtype, generator=generator)
+    sd = torch.as_tensor(sd, dtype=records.dtype).expand(len(records))
+    if not bool((sd >= 0).all()):
+        raise ValueError(f"the unheld response's sd must be non-negative (a relative size), got {sd.tolist()}")
+    scale = records.pow(2).mean((-2, -1)).sqrt() * sd
+    return records + scale[:, None, None] * torch.randn(records.shape, dtype=records.dtype, generator=generator)
 
 
 def relative_compliance_error(S: torch.Tensor, C: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

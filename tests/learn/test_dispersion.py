@@ -15,8 +15,8 @@ from bayespd.learn import graphene, md_loads
 from bayespd.learn.coarse_grain import coarse_grain
 from bayespd.learn.dispersion import (common_offset_posterior, common_offset_prior, error_field, measured_compliance,
                                       off_orbit_response, orbit_error_posterior, orbit_errors_on_lattice,
-                                      mirror_frame, relative_compliance_error, shell_of, unheld_response,
-                                      wave_power_share)
+                                      mirror_frame, relative_compliance_error, shell_of, shell_power_share, unheld_response,
+                                      unheld_response_sd, wave_power_share)
 from bayespd.learn.periodic import periodic_grid
 from bayespd.learn.kernel import lps_params
 from bayespd.linalg.sparse import NotPositiveDefiniteError
@@ -328,15 +328,8 @@ def test_unheld_response_has_its_sd_and_reproduces_the_off_orbit_response():
     f = eq51_forces(s, [(1, 0), (2, 1)])
     with torch.no_grad():
         u = s.spectral_solve(p, f)
-    x = s.material.particles.x
     sizes = np.array([0.003, 0.006, 0.009, 0.012])
-    y = []
-    for m, (n1, n2) in enumerate([(1, 0), (1, 0), (2, 1), (2, 1)]):
-        k = 2 * 2 * np.pi * np.array([n1, n2]) / s.box
-        harmonic = torch.as_tensor(np.cos(x @ k))[:, None] * torch.tensor([1.0, 1.0], dtype=u.dtype)
-        r = sizes[m] / np.sqrt(1 - sizes[m] ** 2)  # off-orbit norm / total norm = sizes[m]
-        y.append(u[m] + r * u[m].norm() / harmonic.norm() * harmonic)
-    measured = off_orbit_response(f, torch.stack(y), n)
+    measured = off_orbit_response(f, with_harmonic(s, u, [(1, 0), (1, 0), (2, 1), (2, 1)], sizes), n)
     assert np.abs(measured.numpy() - sizes).max() < 1e-12
     sd = float(measured.pow(2).mean().sqrt())
     records = u[:2].repeat(20, 1, 1)
@@ -348,6 +341,46 @@ def test_unheld_response_has_its_sd_and_reproduces_the_off_orbit_response():
     assert abs(float(response.pow(2).mean().sqrt()) / sd - np.sqrt(1 - 2 / n**2)) < 0.03
     with pytest.raises(ValueError, match="non-negative"):
         unheld_response(records, -0.01, torch.Generator())
+
+
+def with_harmonic(s, u, modes, sizes):
+    """Responses ``u`` of eq 5.1's loads at ``modes`` plus their second harmonic (both components),
+    of relative size ``sizes`` (its norm over the record's)."""
+    x = s.material.particles.x
+    out = []
+    for m, ((n1, n2), size) in enumerate(zip(modes, sizes)):
+        k = 2 * 2 * np.pi * np.array([n1, n2]) / s.box
+        harmonic = torch.as_tensor(np.cos(x @ k))[:, None] * torch.tensor([1.0, 1.0], dtype=u.dtype)
+        r = size / np.sqrt(1 - size**2)  # off-orbit norm / total norm = size
+        out.append(u[m] + r * u[m].norm() / harmonic.norm() * harmonic)
+    return torch.stack(out)
+
+
+def test_unheld_response_sd_per_shell_of_the_training_records():
+    """Training loads on two shells of |k| h with known off-orbit sizes (1e-3 .. 6e-3): a new wave
+    in a shell gets that shell's rms (1e-12), a load with its power split 1 : 3 between the shells
+    the power-weighted mean square, and a load on a shell no training load reaches is refused."""
+    s, n, p = pd_sheet()
+    h = s.material.particles.h
+    edges = (1.0, 1.6)
+    shell = shell_of(s.wavevectors.numpy(), h, edges)
+    modes = [(1, 0), (1, 1), (2, 1), (2, 2)]  # |k| h 0.63, 0.89 (shell 0); 1.40, 1.78 (shells 1, 2)
+    assert shell_of(2 * np.pi * np.array(modes) / s.box, h, edges).tolist() == [0, 0, 1, 2]
+    f = eq51_forces(s, modes)
+    with torch.no_grad():
+        u = s.spectral_solve(p, f)
+    sizes = np.array([1, 2, 3, 4, 5, 6, 2, 3]) * 1e-3
+    y = with_harmonic(s, u, [m for m in modes for _ in (0, 1)], sizes)
+    shell0, shell1 = np.sqrt(np.mean(sizes[:4] ** 2)), np.sqrt(np.mean(sizes[4:6] ** 2))
+    new = eq51_forces(s, [(0, 1), (1, 2)])  # shells 0 and 1
+    mixed = new[0] + np.sqrt(6) * new[2]  # power 1 : 3 (a cos cos wave has half the power of a cos)
+    loads = torch.cat([new, mixed[None]])
+    got = unheld_response_sd(f, y, loads, shell, n, 3).numpy()
+    want = [shell0, shell0, shell1, shell1, np.sqrt((shell0**2 + 3 * shell1**2) / 4)]
+    assert np.abs(got - want).max() < 1e-12
+    assert np.abs(shell_power_share(loads, shell, n, 3)[-1].numpy() - [0.25, 0.75, 0]).max() < 1e-12
+    with pytest.raises(ValueError, match="no training load reaches the shells \\[2\\]"):
+        unheld_response_sd(f[:6], y[:6], eq51_forces(s, [(2, 2)]), shell, n, 3)
 
 
 def test_bad_offset_input_is_refused():
