@@ -15,7 +15,7 @@ from bayespd.learn import graphene, md_loads
 from bayespd.learn.coarse_grain import coarse_grain
 from bayespd.learn.dispersion import (common_offset_posterior, common_offset_prior, error_field, measured_compliance,
                                       off_orbit_response, orbit_error_posterior, orbit_errors_on_lattice,
-                                      mirror_frame, relative_compliance_error, shell_of, shell_power_share, unheld_response,
+                                      mirror_frame, relative_compliance_error, shell_of, shell_power_share, unheld_part, unheld_response,
                                       unheld_response_sd, wave_power_share)
 from bayespd.learn.periodic import periodic_grid
 from bayespd.learn.kernel import lps_params
@@ -354,6 +354,29 @@ def with_harmonic(s, u, modes, sizes):
         r = size / np.sqrt(1 - size**2)  # off-orbit norm / total norm = size
         out.append(u[m] + r * u[m].norm() / harmonic.norm() * harmonic)
     return torch.stack(out)
+
+
+def test_the_unheld_part_is_what_no_real_compliance_holds():
+    """PD responses of eq 5.1's loads plus a second harmonic (off the orbit) and a phase-shifted copy
+    of the wave (sin for cos along the load: on the orbit, an imaginary compliance): unheld_part
+    is the norm of exactly what was added over the record's (1e-12), and 0 (1e-12) for the PD
+    responses alone, while off_orbit_response sees the harmonic only."""
+    s, n, p = pd_sheet()
+    modes = [(1, 0), (2, 1)]
+    f = eq51_forces(s, modes)
+    with torch.no_grad():
+        u = s.spectral_solve(p, f)
+    assert float(unheld_part(f, u, n).abs().max()) < 1e-12
+    x = s.material.particles.x
+    y = with_harmonic(s, u, [m for m in modes for _ in (0, 1)], [0.004, 0.002, 0.006, 0.003])
+    for m, (n1, n2) in enumerate(m for m in modes for _ in (0, 1)):
+        k = 2 * np.pi * np.array([n1, n2]) / s.box
+        shifted = torch.zeros_like(u[m])
+        shifted[:, m % 2] = torch.as_tensor(np.sin(k[0] * x[:, 0]) * np.cos(k[1] * x[:, 1]))
+        y[m] += 0.005 * (m + 1) * u[m].norm() / shifted.norm() * shifted
+    added = (y - u).norm(dim=(1, 2)) / y.norm(dim=(1, 2))
+    assert float((unheld_part(f, y, n) - added).abs().max()) < 1e-12
+    assert bool((added - off_orbit_response(f, y, n) > 0.002).all())  # the phase part: 0.5-2 %
 
 
 def test_unheld_response_sd_per_shell_of_the_training_records():
