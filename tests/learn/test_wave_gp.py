@@ -87,6 +87,15 @@ def test_growing_amplitude_recovered_within_stated_uncertainty():
     assert fit.log_marginal > fit_wave_gp(kh, Delta, off, 0.0).log_marginal + 3.0
 
 
+def test_a_white_sd_at_its_bound_is_an_answer_with_no_sd():
+    """Errors with no white part, fitted with a measurement sd of 0.4 % (above what their residuals
+    hold): eta goes to its lower bound, which is reported (sd NaN), the others keep finite sds."""
+    kh, off = quadrant(8)
+    fit = fit_wave_gp(kh, prior_draw(kh, off, 0, GP._replace(white=0.0)), off, SIGMA_M)
+    assert abs(np.log(fit.white) + 12.0) < 1e-5 and np.isnan(fit.log_sd[2])
+    assert np.isfinite([fit.log_sd[0], fit.log_sd[1]]).all()
+
+
 def prior_draw(kh, off, seed, gp=GP):
     """Errors drawn from the GP's law at ``kh`` (conditioned on one datum of a huge error: the prior)."""
     return draw_errors(gp, kh[:1], torch.zeros(1, 2, 2, dtype=torch.float64), off[:1], 1e3, kh,
