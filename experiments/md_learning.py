@@ -17,7 +17,8 @@ models/md_dispersion.py (nested Laplace: tau by quadrature; the measured complia
 structured model error, with a measurement error from the training records' off-orbit response;
 models/md_kernel.py's nodal iid likelihood beside it, ``bayes_nodal``), 90 % predictive bands on
 the validation loads (Table 1) and on the unseen loads (sinusoids off the training orbits; their
-model error from bayespd.learn.wave_gp's GP over k, fitted to the training orbits), and the
+model error from bayespd.learn.wave_gp's GP over k with an amplitude growing in |k| h, fitted to the
+training orbits; the response no compliance holds as a white floor), and the
 moduli intervals. Writes runs/md_learning[_surface]/metrics.json with every error and wall time.
 ``--quick``: one horizon, few iterations.
 """
@@ -39,7 +40,8 @@ from bayespd.learn.coarse_grain import coarse_grain
 from bayespd.learn.discrepancy import learn_s0, relative_error
 from bayespd.learn.dispersion import (common_offset_posterior, common_offset_prior, error_field, measured_compliance,
                                       off_orbit_response, orbit_error_posterior, orbit_errors_on_lattice,
-                                      relative_compliance_error, shell_of, wave_power_share)
+                                      relative_compliance_error, shell_of, unheld_response, unheld_response_sd,
+                                      wave_power_share)
 from bayespd.learn.kernel import UnsolvableKernel, learn_kernel, lps_params, relative_errors
 from bayespd.learn.kernel_shape import KernelShape
 from bayespd.learn.moduli import long_wave_moduli
@@ -219,11 +221,14 @@ def bayes(best, data, md_moduli, quick, structured=True):
     (sinusoids on waves the training set lacks): parameter draws + the model's error term (the
     structured model's common offset drawn from its conditional posterior given the draw and the
     training compliances, plus the predicted record's own measurement error; at the waves without a
-    training orbit the error drawn from bayespd.learn.wave_gp's GP conditional given the training
-    orbits', widened by its frame test, on the training waves the shells' draw; for comparison the
+    training orbit the error drawn from bayespd.learn.wave_gp's GP (amplitude growing in |k| h)
+    conditional given the training orbits', widened by its frame test, on the training waves the
+    shells' draw; plus the response no compliance holds, white, of the training records' off-orbit
+    size on the shells of |k| h the load excites (``unheld_response_sd``); for comparison the same
+    without that floor, the stationary GP widened by its own frame test (the previous default), the
     shells' draw everywhere, the offset from its prior N(0, tau^2), the training waves' own model
-    errors fixed at their conditional given the draw's measured ones, and the GP everywhere as
-    fitted); their node coverage and width; whether the 90 %
+    errors fixed at their conditional given the draw's measured ones, and the growing GP everywhere
+    as fitted); their node coverage and width; whether the 90 %
     intervals of the 2D moduli hold the MD sheet's."""
     sheet = data["sheet"]
     f, u = data["train"]
@@ -271,11 +276,12 @@ def bayes(best, data, md_moduli, quick, structured=True):
     if structured:
         k_train = torch.as_tensor(modes * 2 * np.pi / sheet.box)
         train_shell = shell_of(k_train.numpy(), h, SHELLS)
-        gp, inflation, gp_wall = _wave_gp(sheet, draws, modes, k_train, C, off, train_shell, sigma_m)
+        gp, stationary, gp_wall = _wave_gp(sheet, draws, modes, k_train, C, off, train_shell, sigma_m)
         quadrant = np.array([(i, j) for i in range(n // 2 + 1) for j in range(n // 2 + 1) if i or j])
         k_quadrant, waves = torch.as_tensor(quadrant * 2 * np.pi / sheet.box), torch.Generator().manual_seed(2)
         new = ~(quadrant[:, None] == modes[None]).all(-1).any(1)  # the waves without a training orbit
-    pred, shells, fresh, pinned, smooth, inadmissible = [], [], [], [], [], 0
+        unheld = unheld_response_sd(f, y, fv, shell, n, len(SHELLS) + 1)  # training records only
+    pred, bare, still, shells, fresh, pinned, smooth, inadmissible = [], [], [], [], [], [], [], 0
     t = time.perf_counter()
     for k in range(len(draws["mu"])):  # every draw: the 5-95 % quantiles of n draws hold a new draw of the same law
         # with probability (q95 - q05 order positions) / (n + 1): 0.891 for n = 200, 0.865 for the 50 used before
@@ -290,16 +296,22 @@ def bayes(best, data, md_moduli, quick, structured=True):
                     total = (s_k[train_shell] ** 2 + sigma_m**2).sqrt()
                     offset = common_offset_posterior(Delta, total, tau_k, off).sample(generator)
                     shells.append(mean + error_field(S_all, fv, s_k[shell], offset, n, generator, measurement=sigma_m).numpy())
-                    field = offset + draw_errors(gp, k_train * h, Delta - offset, off, sigma_m, k_quadrant[new] * h, waves,
-                                                 inflation)  # off the training orbits: the GP, widened as its frame test says
+                    field = offset + draw_errors(gp["gp"], k_train * h, Delta - offset, off, sigma_m, k_quadrant[new] * h,
+                                                 waves, gp["inflation"])  # off the training orbits: the GP, widened as its frame test says
                     error = error_field(S_all, fv, s_k[shell], offset, n, waves, measurement=sigma_m,
                                         known=orbit_errors_on_lattice(quadrant[new], field, n)).numpy()
+                    bare.append(mean + error)
+                    error = unheld_response(torch.as_tensor(mean + error), unheld, waves).numpy() - mean
+                    field = offset + draw_errors(stationary["gp"], k_train * h, Delta - offset, off, sigma_m,
+                                                 k_quadrant[new] * h, compare, stationary["inflation"])
+                    still.append(mean + error_field(S_all, fv, s_k[shell], offset, n, compare, measurement=sigma_m,
+                                                    known=orbit_errors_on_lattice(quadrant[new], field, n)).numpy())
                     fresh.append(mean + error_field(S_all, fv, s_k[shell], common_offset_prior(tau_k).sample(compare),
                                                     n, compare, measurement=sigma_m).numpy())
                     known = orbit_error_posterior(Delta, s_k[train_shell], sigma_m, offset).sample(compare)
                     pinned.append(mean + error_field(S_all, fv, s_k[shell], offset, n, compare, measurement=sigma_m,
                                                      known=orbit_errors_on_lattice(modes, known, n)).numpy())
-                    field = offset + draw_errors(gp, k_train * h, Delta - offset, off, sigma_m, k_quadrant * h, waves)
+                    field = offset + draw_errors(gp["gp"], k_train * h, Delta - offset, off, sigma_m, k_quadrant * h, waves)
                     smooth.append(mean + error_field(S_all, fv, s_k[shell], offset, n, waves, measurement=sigma_m,
                                                      known=orbit_errors_on_lattice(quadrant, field, n)).numpy())
                 else:
@@ -323,13 +335,14 @@ def bayes(best, data, md_moduli, quick, structured=True):
         return {"node_coverage": float(inside.mean()), "load_node_coverage": inside.mean(1).tolist(),
                 "width_rel": float(((hi - lo) / s_[:, None, None]).mean()), **widen}
 
-    at, bands = 0, {}
+    at, bands, ranges = 0, {}, {}
     for name, (fs, _) in sets.items():
-        rows = slice(at, at + len(fs))
+        rows = ranges[name] = slice(at, at + len(fs))
         at += len(fs)
         bands[name] = {"default": band(pred, rows)}
         if structured:
-            bands[name] |= {"shells": band(shells, rows), "prior_offset": band(fresh, rows),
+            bands[name] |= {"no_unheld_response": band(bare, rows), "stationary_gp": band(still, rows),
+                            "shells": band(shells, rows), "prior_offset": band(fresh, rows),
                             "training_waves_known": band(pinned, rows), "wave_gp": band(smooth, rows),
                             **_training_wave_share(fs, yv[rows], np.array(pinned)[:, rows], modes, n)}
     summary = {k: {"mean": np.mean(v, 0).tolist(), "sd": np.std(v, 0).tolist(), "q05": np.quantile(v, 0.05, 0).tolist(),
@@ -341,8 +354,10 @@ def bayes(best, data, md_moduli, quick, structured=True):
                            "+ measurement error" if structured else "nodal iid relative noise"),
             "measurement_error": {"sd": sigma_m, "off_orbit_response": harmonics.tolist(),
                                   "off_orbit_response_median": float(harmonics.median())} if structured else None,
-            "wave_gp": {**gp._asdict(), "frame_extrapolation_z_rms": inflation, "fit_wall_time_s": gp_wall}
-            if structured else None,
+            "unheld_response_sd": {name: unheld[rows].tolist() for name, rows in ranges.items()} if structured else None,
+            "wave_gp": {"growing": _gp_summary(gp), "stationary": _gp_summary(stationary),
+                        "log_evidence_growing_minus_stationary": gp["gp"].log_marginal - stationary["gp"].log_marginal,
+                        "fit_wall_time_s": gp_wall} if structured else None,
             "shells_kh": SHELLS if structured else None, "wall_time_s": wall, "predictive_wall_time_s": predictive_wall,
             "draws": len(draws["mu"]), "posterior": summary,
             "validation_band90_node_coverage": bands["validation"]["default"]["node_coverage"],
@@ -350,21 +365,40 @@ def bayes(best, data, md_moduli, quick, structured=True):
             "moduli_interval90_covers_md": covers, "predictive_draws": len(pred), "inadmissible_draws": inadmissible}
 
 
+FRAMES = 3  # the frame tests pooled: the outer 3 frames of training orbits (the inner sets: 8, 15, 24 orbits)
+
+
 def _wave_gp(sheet, draws, modes, k_train, C, off, train_shell, sigma_m):
-    """(bayespd.learn.wave_gp's GP fitted to the training orbits' relative errors, less their common
-    offset, at the posterior mean of the parameters; the rms z-score of the outer frame of orbits
-    under the GP of the inner ones (``frame_extrapolation``, the widening one lattice step needs);
-    the wall time)."""
+    """bayespd.learn.wave_gp's GPs fitted to the training orbits' relative errors, less their common
+    offset, at the posterior mean of the parameters: the growing one (the default) and the
+    stationary one (the previous default), each with the widening one lattice step of
+    extrapolation needs inside the training set (the rms z-score of the outer ``FRAMES`` frames,
+    pooled, each under the GP conditioned on the orbits inside it: the growing GP with its
+    hyperparameters from every frame, as the inner frames alone show no growth (max(n1, n2) <= 3
+    and <= 4: g -> 0 or +1.6 nats); the stationary GP refitted to the inner orbits as before,
+    outermost frame only); and the wall time."""
     t = time.perf_counter()
     mean = {k: np.mean(np.asarray(draws[k]), 0) for k in ("lambda", "mu", "D", "delta", "s", "tau")}
     Delta, _ = relative_compliance_error(sheet.symbol(lps_params(mean["lambda"], mean["mu"], mean["D"], mean["delta"]),
                                                       k_train), C)
     total = (torch.as_tensor(mean["s"])[train_shell] ** 2 + sigma_m**2).sqrt()
     offset = common_offset_posterior(Delta, total, float(mean["tau"]), off).mean
-    kh = k_train * sheet.material.particles.h
-    gp = fit_wave_gp(kh, Delta - offset, off, sigma_m)
-    inflation = float(frame_extrapolation(modes, kh, Delta - offset, off, sigma_m).pow(2).mean().sqrt())
-    return gp, inflation, time.perf_counter() - t
+    kh, error = k_train * sheet.material.particles.h, Delta - offset
+    gp = fit_wave_gp(kh, error, off, sigma_m, growing=True)
+    last = int(modes.max())
+    z = {f: frame_extrapolation(modes, kh, error, off, sigma_m, True, f, gp) for f in range(last - FRAMES + 1, last + 1)}
+    growing = {"gp": gp, "inflation": float(torch.cat(list(z.values())).pow(2).mean().sqrt()),
+               "frame_z_rms": {f: float(v.pow(2).mean().sqrt()) for f, v in z.items()}}
+    z = frame_extrapolation(modes, kh, error, off, sigma_m)
+    rms = float(z.pow(2).mean().sqrt())
+    stationary = {"gp": fit_wave_gp(kh, error, off, sigma_m), "inflation": rms, "frame_z_rms": {last: rms}}
+    return growing, stationary, time.perf_counter() - t
+
+
+def _gp_summary(fitted):
+    """A fitted GP's hyperparameters, log evidence, frame z-scores and widening for metrics.json."""
+    return {**fitted["gp"]._asdict(), "frame_extrapolation_z_rms": fitted["frame_z_rms"],
+            "widening": fitted["inflation"]}
 
 
 def _training_wave_share(forces, y, pinned, modes, n):

@@ -17,7 +17,9 @@ parameters: predictive error fields draw it from its conditional posterior (``co
 With a measurement error of the compliances (models/md_dispersion.py's sigma_m, which
 ``off_orbit_response`` measures on single-wave records) the training orbits' model errors are known
 given the parameters only up to it (``orbit_error_posterior``); ``wave_power_share`` says how much of
-a load lies on given orbits.
+a load lies on given orbits. A predicted record's error field (``error_field``) keeps the mirror
+symmetry (one error per orbit, M Delta M at the mirror pair, diagonal on the axes), and
+``unheld_response`` adds the response no compliance holds as a white floor.
 """
 from __future__ import annotations
 
@@ -91,6 +93,67 @@ def off_orbit_response(forces: torch.Tensor, y: torch.Tensor, n: int) -> torch.T
         power[_orbit_index([(n1, n2)], n)] = 0.0
         out.append((power.sum() / total).sqrt())
     return torch.stack(out)
+
+
+def unheld_part(forces: torch.Tensor, y: torch.Tensor, n: int) -> torch.Tensor:
+    """The relative norm (loads,) of each zero-mean sinusoidal record ``y`` (eq 5.1's ``forces``,
+    (loads, n * n, 2)) beyond the response of the compliance measured from the records themselves
+    (``measured_compliance``, put on each orbit's wavevectors by ``orbit_errors_on_lattice``): the
+    off-orbit response (``off_orbit_response``) plus the on-orbit part that no real, symmetric,
+    mirror-symmetric compliance holds (a phase shift of the wave, the Maxwell-Betti and mirror
+    asymmetries). 0 for a linear, translation- and mirror-invariant sheet."""
+    modes, C, _ = measured_compliance(forces, y, n)
+    index, C_lattice = orbit_errors_on_lattice(modes, C, n)
+    f_hat = torch.fft.fft2(torch.as_tensor(forces).reshape(-1, n, n, 2), dim=(1, 2)).reshape(len(forces), -1, 2)
+    held = torch.zeros_like(f_hat)
+    held[:, index + 1] = torch.einsum("kab,mkb->mka", C_lattice.to(f_hat.dtype), f_hat[:, index + 1])
+    held = torch.fft.ifft2(held.reshape(-1, n, n, 2), dim=(1, 2)).real.reshape(y.shape)
+    return (y - held).norm(dim=(1, 2)) / y.norm(dim=(1, 2))
+
+
+def shell_power_share(forces: torch.Tensor, shell: torch.Tensor, n: int, shells: int) -> torch.Tensor:
+    """The fraction (loads, shells) of each load's power (|f_hat|^2, both components, k != 0) on each
+    shell of |k| h; ``shell`` (n * n - 1,): the shell of each of ``PeriodicSheet.wavevectors``
+    (``shell_of``), ``forces`` (loads, n * n, 2), nodes x-major."""
+    power = torch.fft.fft2(torch.as_tensor(forces).reshape(-1, n, n, 2), dim=(1, 2)).abs().pow(2).sum(-1)
+    power = power.reshape(len(power), -1)[:, 1:]
+    share = torch.zeros(len(power), shells, dtype=power.dtype).index_add(1, torch.as_tensor(shell), power)
+    return share / share.sum(1, keepdim=True)
+
+
+def unheld_response_sd(forces: torch.Tensor, y: torch.Tensor, loads: torch.Tensor, shell: torch.Tensor, n: int,
+                       shells: int) -> torch.Tensor:
+    """The unheld response's sd (loads,) for the records of ``loads`` (m, n * n, 2), from the training
+    records' ``unheld_part`` r_t (sinusoidal ``forces`` and zero-mean responses ``y``, (T, n * n, 2)),
+    which grows with |k| h (on the MD sheet 0.16 % on |k| h < 0.5, 0.74 % beyond 1.5): per shell b of |k| h (``shell`` as
+    ``shell_power_share``) the training loads' power-weighted mean square s_b^2 = sum_t P_tb r_t^2 /
+    sum_t P_tb, then sd_m^2 = sum_b P_mb s_b^2 with P the shell power shares; a shell no training
+    load reaches is refused."""
+    r = unheld_part(forces, y, n)
+    train = shell_power_share(forces, shell, n, shells)
+    weight = train.sum(0)
+    share = shell_power_share(loads, shell, n, shells)
+    empty = (weight < 1e-9 * weight.sum()) & (share.max(0).values > 1e-9)  # 1e-9: above the FFT's rounding
+    if bool(empty.any()):
+        raise ValueError(f"no training load reaches the shells {empty.nonzero().flatten().tolist()} of |k| h that the "
+                         f"loads excite: add training waves there or merge the shells")
+    return (share @ ((train.T @ r.pow(2)) / weight.clamp(min=1e-300))).sqrt()  # a rounding-empty shell: share ~ 0
+
+
+def unheld_response(records: torch.Tensor, sd, generator: torch.Generator) -> torch.Tensor:
+    """``records`` (loads, N, 2) plus the response no compliance holds (``unheld_part``: the sheet's
+    harmonics, the coarse graining's leakage, the waves' phase shifts), drawn white: N(0, (sd_m r_m)^2) at every
+    node and component, r_m the rms of record m over its nodes and components, ``sd`` a number or
+    (loads,) (``unheld_response_sd``). White noise puts a share 4 / N of its power on one orbit, so
+    the draw's unheld part is sd (1 - O(1 / N)): the training records' ``unheld_part`` is the sd
+    that reproduces their own. It gives the band a floor where a relative compliance
+    error gives none (a load's zero crossings, the cross component of an axis wave)."""
+    records = torch.as_tensor(records)
+    sd = torch.as_tensor(sd, dtype=records.dtype).expand(len(records))
+    if not bool((sd >= 0).all()):
+        raise ValueError(f"the unheld response's sd must be non-negative (a relative size), got {sd.tolist()}")
+    scale = records.pow(2).mean((-2, -1)).sqrt() * sd
+    return records + scale[:, None, None] * torch.randn(records.shape, dtype=records.dtype, generator=generator)
 
 
 def relative_compliance_error(S: torch.Tensor, C: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -207,33 +270,55 @@ def orbit_errors_on_lattice(modes, Delta: torch.Tensor, n: int) -> tuple[torch.T
     return torch.as_tensor(index), torch.stack([torch.stack(found[k]).mean(0) for k in index])
 
 
+def mirror_frame(n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(rep, sign) (n * n - 1,) for ``PeriodicSheet.wavevectors`` on the n x n lattice: the flat
+    index of each wavevector's orbit representative (min(n1, n - n1), min(n2, n - n2)) (the frame of
+    ``measured_compliance``'s Delta_o) and the sign s1 s2 of its 01 entry in that frame (s_i = +1 for
+    0 < n_i < n / 2, -1 beyond): the mirror symmetry maps Delta_o to M Delta_o M at the mirror pair.
+    sign = 0 on the self-mirror wavevectors, an axis or a Nyquist line (n / 2, n even), which a
+    mirror maps onto themselves (or -k): there M Delta M = Delta, so Delta_01 = 0."""
+    index = np.arange(n)
+    fold = np.minimum(index, n - index)
+    side = np.where((index == 0) | (2 * index == n), 0, np.where(2 * index < n, 1, -1))
+    rep = (fold[:, None] * n + fold[None, :]).ravel()[1:]
+    return torch.as_tensor(rep), torch.as_tensor((side[:, None] * side[None, :]).ravel()[1:])
+
+
+def _in_frame(Delta: torch.Tensor, sign: torch.Tensor) -> torch.Tensor:
+    """Orbit-frame matrices (m, 2, 2) mapped to their wavevectors: the 01 entry times ``sign`` (m,)."""
+    scale = torch.ones_like(Delta)
+    scale[:, 0, 1] = scale[:, 1, 0] = sign.to(Delta.dtype)
+    return Delta * scale
+
+
 def error_field(S: torch.Tensor, forces: torch.Tensor, s: torch.Tensor, offset: torch.Tensor, n: int,
                 generator: torch.Generator, known: tuple[torch.Tensor, torch.Tensor] | None = None,
                 measurement: float = 0.0) -> torch.Tensor:
     """One draw of the model error u_md - u_pd (loads, n * n, 2) under ``forces`` (loads, n * n, 2):
     at each k != 0, L^-T Delta(k) L^-1 f_hat(k) with S (n * n - 1, 2, 2) the symbols at
-    ``PeriodicSheet.wavevectors``, Delta(k) = Delta(-k) symmetric of entries N(0, s_k^2) (s_k^2 / 2
-    off the diagonal; ``s`` (n * n - 1,)) plus ``offset`` (2, 2, symmetric), common to every k (a
-    draw of ``common_offset_prior`` or ``common_offset_posterior``); ``known``: (index, Delta) of
-    wavevectors whose error the data fix (``orbit_errors_on_lattice``), which replace the draw there;
-    ``measurement``: the sd of the predicted record's own measurement error, a fresh symmetric
-    relative error of the same law at every k (models/md_dispersion.py)."""
+    ``PeriodicSheet.wavevectors``. Delta is drawn once per orbit {(+-k1, +-k2)} in its
+    representative's frame (``mirror_frame``): symmetric, entries N(0, s_k^2) (s_k^2 / 2 off the
+    diagonal; ``s`` (n * n - 1,), a function of |k|) plus ``offset`` (2, 2, symmetric), common to every
+    orbit (a draw of ``common_offset_prior`` or ``common_offset_posterior``), and mapped to the
+    orbit's wavevectors as the mirror symmetry demands (M Delta M at the mirror pair, so Delta(-k) =
+    Delta(k), and Delta_01 = 0 on the self-mirror axes and Nyquist lines, where the sheet's compliance
+    and the PD symbol are both diagonal); ``known``: (index, Delta) of wavevectors whose error the
+    data fix (``orbit_errors_on_lattice``), which replace the draw there; ``measurement``: the sd of
+    the predicted record's own measurement error, a fresh error of the same law (per orbit,
+    mirrored) at every k (models/md_dispersion.py)."""
     if offset.shape != (2, 2) or not torch.equal(offset, offset.T):
         raise ValueError(f"the common offset must be a symmetric 2 x 2 matrix (SymmetricNormal.sample), got {offset}")
-    a, b = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
-    flat, partner = (a * n + b).ravel(), ((-a % n) * n + (-b % n)).ravel()
-    pair = torch.as_tensor(np.minimum(flat, partner))
+    rep, sign = mirror_frame(n)
 
-    def symmetric_draw(sd):  # one N(0, sd^2) (N(0, sd^2 / 2) off the diagonal) matrix for k and -k
-        A = torch.randn(n * n, 2, 2, dtype=S.dtype, generator=generator)
-        A = sd * A[pair][1:]
+    def symmetric_draw(sd):  # one N(0, sd^2) (N(0, sd^2 / 2) off the diagonal) matrix per orbit
+        A = sd * torch.randn(n * n, 2, 2, dtype=S.dtype, generator=generator)[rep]
         return (A + A.transpose(-1, -2)) / 2
 
-    Delta = symmetric_draw(s[:, None, None]) + offset
+    Delta = _in_frame(symmetric_draw(s[:, None, None]) + offset, sign)
     if known is not None:
         Delta[known[0]] = known[1].to(Delta.dtype)
     if measurement > 0:
-        Delta = Delta + symmetric_draw(measurement)
+        Delta = Delta + _in_frame(symmetric_draw(measurement), sign)
     Linv = torch.linalg.inv(torch.linalg.cholesky(S)).to(torch.complex128)
     f_hat = torch.fft.fft2(torch.as_tensor(forces).reshape(-1, n, n, 2), dim=(1, 2)).reshape(len(forces), -1, 2)
     e_hat = torch.zeros_like(f_hat)

@@ -3,7 +3,9 @@ own symbol's inverse (the relative error Delta vanishes to rounding), and a mode
 the law it states (per-entry variances, chi-square); the common offset's conditional posterior is
 Gaussian conditioning of the joint law (to 1e-12) and its 90 % intervals are calibrated; with a
 measurement error the training orbits' model errors are dense conditioning too; the power share
-and the off-orbit response of sinusoidal loads are exact on a lattice."""
+and the off-orbit response of sinusoidal loads are exact on a lattice; on the self-mirror
+wavevectors the error field's Delta_01 is 0 and elsewhere it is what was drawn; the unheld
+response's white draw has its stated sd and the off-orbit response it was measured from."""
 import numpy as np
 import pytest
 import torch
@@ -13,7 +15,8 @@ from bayespd.learn import graphene, md_loads
 from bayespd.learn.coarse_grain import coarse_grain
 from bayespd.learn.dispersion import (common_offset_posterior, common_offset_prior, error_field, measured_compliance,
                                       off_orbit_response, orbit_error_posterior, orbit_errors_on_lattice,
-                                      relative_compliance_error, shell_of, wave_power_share)
+                                      mirror_frame, relative_compliance_error, shell_of, shell_power_share, unheld_part, unheld_response,
+                                      unheld_response_sd, wave_power_share)
 from bayespd.learn.periodic import periodic_grid
 from bayespd.learn.kernel import lps_params
 from bayespd.linalg.sparse import NotPositiveDefiniteError
@@ -264,6 +267,143 @@ def test_known_orbit_errors_are_what_the_loads_then_measure():
     want = Delta[order].clone()
     want[~off, 0, 1] = want[~off, 1, 0] = 0.0
     assert float((got - want).abs().max()) < 1e-12
+
+
+def test_mirror_frame_maps_each_wavevector_to_its_orbit():
+    """Each wavevector's representative is the one of its orbit {(+-n1, +-n2)} with 0 <= n1, n2 <= n / 2,
+    and its 01 sign is that of M^a Delta M^a (a: the mirrors that carry the representative there):
+    0 exactly on the wavevectors some mirror maps onto themselves (mod n), 35 of 99 on a 10 x 10
+    lattice, the axes alone (20 of 120) on an 11 x 11 one."""
+    for n, count in ((10, 35), (11, 20)):
+        rep, sign = mirror_frame(n)
+        for flat, (r, sg) in enumerate(zip(rep.tolist(), sign.tolist()), 1):
+            i, j = divmod(flat, n)
+            images = {(s1 * (r // n) % n, s2 * (r % n) % n): s1 * s2 for s1 in (1, -1) for s2 in (1, -1)}
+            assert (i, j) in images and 2 * (r // n) <= n and 2 * (r % n) <= n
+            fixed = i == -i % n or j == -j % n
+            assert sg == (0 if fixed else images[(i, j)])
+        assert int((sign == 0).sum()) == count
+
+
+def test_the_error_field_is_diagonal_on_the_self_mirror_waves_and_unchanged_elsewhere():
+    """With s = 0 the drawn Delta is the offset c alone, in each orbit's frame: eq 5.1's loads on the
+    PD response plus the field measure back c at the off-axis waves (all three entries, to 1e-12:
+    the mirror pair carries M c M, which measured_compliance maps back) and diag(c) on the axis
+    waves, with Delta_01 below 1e-14 against c_01 = 0.02 (no mirror pair to average there: the
+    frame's sign zeroes it); read directly at the Nyquist line (5, 2), the same."""
+    s, n, p = pd_sheet()
+    modes = np.array([(2, 0), (0, 3), (1, 1), (2, 3), (4, 1)])
+    f = eq51_forces(s, modes)
+    with torch.no_grad():
+        u = s.spectral_solve(p, f)
+        S = s.symbol(p, s.wavevectors)
+    c = torch.tensor([[0.03, 0.02], [0.02, -0.01]], dtype=torch.float64)
+    zero = torch.zeros(n * n - 1, dtype=torch.float64)
+    e = error_field(S, f, zero, c, n, torch.Generator().manual_seed(0))
+    found, C, off = measured_compliance(f, u + e, n)
+    got, _ = relative_compliance_error(s.symbol(p, torch.as_tensor(found * 2 * np.pi / s.box)).detach(), C)
+    assert found.tolist() == [[0, 3], [1, 1], [2, 0], [2, 3], [4, 1]] and (~off).tolist() == [True, False, True, False, False]
+    assert float((got[off] - c).abs().max()) < 1e-12
+    assert float((got[~off].diagonal(dim1=-2, dim2=-1) - c.diagonal()).abs().max()) < 1e-12
+    assert float(got[~off, 0, 1].abs().max()) < 1e-14
+    f5 = eq51_forces(s, [(5, 2)])
+    e5 = error_field(S, f5, zero, c, n, torch.Generator().manual_seed(0))
+    e_hat = torch.fft.fft2(e5.reshape(2, n, n, 2), dim=(1, 2))[:, 5, 2]
+    f_hat = torch.fft.fft2(f5.reshape(2, n, n, 2), dim=(1, 2))[:, 5, 2]
+    L = torch.linalg.cholesky(S[5 * n + 2 - 1])
+    nyquist = L.T @ torch.stack([(e_hat[a] / f_hat[a, a]).real for a in (0, 1)], -1) @ L
+    assert abs(float(nyquist[0, 1])) < 1e-14 and float((nyquist.diagonal() - c.diagonal()).abs().max()) < 1e-12
+
+
+def test_unheld_response_has_its_sd_and_reproduces_the_off_orbit_response():
+    """Synthetic records: the PD response of eq 5.1's loads plus a known off-orbit part (the second
+    harmonic, relative sizes 0.3, 0.6, 0.9, 1.2 %): off_orbit_response reads each back (1e-12) and
+    their rms is the unheld response's sd. Its white draw on 40 PD records ((1, 0) along x and y;
+    200 values each) has the stated variance (chi-square over the 8000 values in its two-sided 99 %
+    range; a variance off by 5 % moves the statistic by 400 against its sd of 126) and puts the
+    share 1 - 2 / 100 of its power off the orbit (an axis orbit holds 2 of the 100 wavevectors): the
+    records' rms off-orbit response is sd sqrt(0.98) within 3 % (rms over 40 records of about 200
+    values: about 0.8 % relative sd)."""
+    s, n, p = pd_sheet()
+    f = eq51_forces(s, [(1, 0), (2, 1)])
+    with torch.no_grad():
+        u = s.spectral_solve(p, f)
+    sizes = np.array([0.003, 0.006, 0.009, 0.012])
+    measured = off_orbit_response(f, with_harmonic(s, u, [(1, 0), (1, 0), (2, 1), (2, 1)], sizes), n)
+    assert np.abs(measured.numpy() - sizes).max() < 1e-12
+    sd = float(measured.pow(2).mean().sqrt())
+    records = u[:2].repeat(20, 1, 1)
+    drawn = unheld_response(records, sd, torch.Generator().manual_seed(3))
+    scale = records.pow(2).mean((1, 2), keepdim=True).sqrt()
+    chi2 = float(((drawn - records) / (sd * scale)).pow(2).sum())
+    assert stats.chi2.ppf(0.005, records.numel()) < chi2 < stats.chi2.ppf(0.995, records.numel())
+    response = off_orbit_response(f[:2].repeat(20, 1, 1), drawn, n)
+    assert abs(float(response.pow(2).mean().sqrt()) / sd - np.sqrt(1 - 2 / n**2)) < 0.03
+    with pytest.raises(ValueError, match="non-negative"):
+        unheld_response(records, -0.01, torch.Generator())
+
+
+def with_harmonic(s, u, modes, sizes):
+    """Responses ``u`` of eq 5.1's loads at ``modes`` plus their second harmonic (both components),
+    of relative size ``sizes`` (its norm over the record's)."""
+    x = s.material.particles.x
+    out = []
+    for m, ((n1, n2), size) in enumerate(zip(modes, sizes)):
+        k = 2 * 2 * np.pi * np.array([n1, n2]) / s.box
+        harmonic = torch.as_tensor(np.cos(x @ k))[:, None] * torch.tensor([1.0, 1.0], dtype=u.dtype)
+        r = size / np.sqrt(1 - size**2)  # off-orbit norm / total norm = size
+        out.append(u[m] + r * u[m].norm() / harmonic.norm() * harmonic)
+    return torch.stack(out)
+
+
+def test_the_unheld_part_is_what_no_real_compliance_holds():
+    """PD responses of eq 5.1's loads plus a second harmonic (off the orbit) and a phase-shifted copy
+    of the wave (sin for cos along the load: on the orbit, an imaginary compliance): unheld_part
+    is the norm of exactly what was added over the record's (1e-12), and 0 (1e-12) for the PD
+    responses alone, while off_orbit_response sees the harmonic only."""
+    s, n, p = pd_sheet()
+    modes = [(1, 0), (2, 1)]
+    f = eq51_forces(s, modes)
+    with torch.no_grad():
+        u = s.spectral_solve(p, f)
+    assert float(unheld_part(f, u, n).abs().max()) < 1e-12
+    x = s.material.particles.x
+    y = with_harmonic(s, u, [m for m in modes for _ in (0, 1)], [0.004, 0.002, 0.006, 0.003])
+    for m, (n1, n2) in enumerate(m for m in modes for _ in (0, 1)):
+        k = 2 * np.pi * np.array([n1, n2]) / s.box
+        shifted = torch.zeros_like(u[m])
+        shifted[:, m % 2] = torch.as_tensor(np.sin(k[0] * x[:, 0]) * np.cos(k[1] * x[:, 1]))
+        y[m] += 0.005 * (m + 1) * u[m].norm() / shifted.norm() * shifted
+    added = (y - u).norm(dim=(1, 2)) / y.norm(dim=(1, 2))
+    assert float((unheld_part(f, y, n) - added).abs().max()) < 1e-12
+    assert bool((added - off_orbit_response(f, y, n) > 0.002).all())  # the phase part: 0.5-2 %
+
+
+def test_unheld_response_sd_per_shell_of_the_training_records():
+    """Training loads on two shells of |k| h with known off-orbit sizes (1e-3 .. 6e-3): a new wave
+    in a shell gets that shell's rms (1e-12), a load with its power split 1 : 3 between the shells
+    the power-weighted mean square, and a load on a shell no training load reaches is refused."""
+    s, n, p = pd_sheet()
+    h = s.material.particles.h
+    edges = (1.0, 1.6)
+    shell = shell_of(s.wavevectors.numpy(), h, edges)
+    modes = [(1, 0), (1, 1), (2, 1), (2, 2)]  # |k| h 0.63, 0.89 (shell 0); 1.40, 1.78 (shells 1, 2)
+    assert shell_of(2 * np.pi * np.array(modes) / s.box, h, edges).tolist() == [0, 0, 1, 2]
+    f = eq51_forces(s, modes)
+    with torch.no_grad():
+        u = s.spectral_solve(p, f)
+    sizes = np.array([1, 2, 3, 4, 5, 6, 2, 3]) * 1e-3
+    y = with_harmonic(s, u, [m for m in modes for _ in (0, 1)], sizes)
+    shell0, shell1 = np.sqrt(np.mean(sizes[:4] ** 2)), np.sqrt(np.mean(sizes[4:6] ** 2))
+    new = eq51_forces(s, [(0, 1), (1, 2)])  # shells 0 and 1
+    mixed = new[0] + np.sqrt(6) * new[2]  # power 1 : 3 (a cos cos wave has half the power of a cos)
+    loads = torch.cat([new, mixed[None]])
+    got = unheld_response_sd(f, y, loads, shell, n, 3).numpy()
+    want = [shell0, shell0, shell1, shell1, np.sqrt((shell0**2 + 3 * shell1**2) / 4)]
+    assert np.abs(got - want).max() < 1e-12
+    assert np.abs(shell_power_share(loads, shell, n, 3)[-1].numpy() - [0.25, 0.75, 0]).max() < 1e-12
+    with pytest.raises(ValueError, match="no training load reaches the shells \\[2\\]"):
+        unheld_response_sd(f[:6], y[:6], eq51_forces(s, [(2, 2)]), shell, n, 3)
 
 
 def test_bad_offset_input_is_refused():
