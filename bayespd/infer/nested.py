@@ -18,11 +18,13 @@ to the grid's quadrature error; for separated modes, each mode's Laplace error.
 
 Which modes: a conditional with several modes makes one walk along the grid take whichever its
 path meets (the MD fit's tau = 1 %: two runs 3e-8 apart met modes 2.17 nats apart). So every grid
-point is searched from ``init`` (``find_map``), and every mode found is continued to both
-neighbouring points (trust-region Newton from its branch's linear extrapolation in log tau,
-``find_map`` from there where Newton does not converge); modes new in a sweep are continued in the
-next, until a sweep finds none. The result is the closure of those searches, the same whichever
-point a walk would have started from.
+point is searched from ``init``, and every mode found is continued to both neighbouring points
+(from its branch's linear extrapolation in log tau); modes new in a sweep are continued in the next,
+until a sweep finds none. The result is the closure of those searches, the same whichever point a
+walk would have started from. Each search: trust-region Newton steps on the exact Hessian
+(``find_map``, L-BFGS first, where they do not converge); a start that a chord iteration on the
+Hessian of a mode already found takes into it ends there, with gradients only (the continuations
+that meet a known mode, most of them).
 """
 
 import math
@@ -46,6 +48,7 @@ from .trust_region import polish
 NEWTON_STEPS = 30  # trust-region Newton trials from a predicted conditional mode before L-BFGS takes over
 CONVERGED = 1e-6  # Newton decrement at a mode (find_map's test: 1e-3 posterior sd from the quadratic model's mode)
 SAME_MODE = 1e-2  # whitened distance (in each end's Hessian metric) within which two search ends are one mode
+CHORD_STEPS = 20  # chord iterations (gradients only) that may take a start into a mode already found
 
 
 @dataclass
@@ -83,13 +86,14 @@ def nested_laplace(model, data: dict, site: str, grid, init: dict, num_samples: 
     while pending:
         sweeps += 1
         new = []
-        for j, guess, parent in pending:
+        for j, start, parent in pending:
             t = time.perf_counter()
-            z, u, h, (n_grad, n_hess) = _conditional_mode(spaces[j], guess)
+            end, (n_grad, n_hess) = _search(spaces[j], spaces[j].initial if start is None else start, modes[j])
             searches[j] += 1
             gradients[j] += n_grad
             hessians[j] += n_hess
-            mass = laplace_log_mass(u, h)
+            z, u, h = end or (None, None, None)
+            mass = None if end is None else laplace_log_mass(u, h)
             if mass is not None and not any(_same_mode(z, h, m.z, m.hessian) for m in modes[j]):
                 modes[j].append(_Mode(z, u, h, mass + math.log(grid[j]), parent))
                 new.append((j, len(modes[j]) - 1))
@@ -130,8 +134,7 @@ def _same_mode(za, ha, zb, hb) -> bool:
     whitened units of its mode, so two ends of one mode lie within 2e-3; two distinct minima of a
     smooth potential are separated by a saddle, whitened distance O(1) (closer than 1e-2 the barrier
     between them would be ~1e-4 nats and their Laplace masses one)."""
-    d = za - zb
-    return max(float(d @ ha @ d), float(d @ hb @ d)) <= SAME_MODE**2
+    return max(_whitened(za - zb, ha), _whitened(za - zb, hb)) <= SAME_MODE
 
 
 def _extrapolate(modes, j, i, k):
@@ -143,28 +146,57 @@ def _extrapolate(modes, j, i, k):
     return mode.z
 
 
-def _conditional_mode(space, guess):
-    """(z, potential, exact Hessian, (gradient evaluations, Hessian evaluations)): ``find_map`` from
-    ``space.initial`` (``init``) when ``guess`` is None, else trust-region Newton from ``guess``
-    (unconstrained) if it converges there, else ``find_map`` from ``guess`` (from ``init`` where the
-    model refuses ``guess``)."""
-    hessians = []
+def _search(space, start, known):
+    """One search at a grid point from ``start`` (unconstrained): ((z, potential, exact Hessian) of
+    the mode it ends at, or None where it ends at one of ``known``, the point's modes so far),
+    (gradient evaluations, Hessian evaluations)). A start from which the chord iteration on a known
+    mode's Hessian contracts into it (``_chord``, gradients only) ends there; otherwise trust-region
+    Newton steps while they converge, else ``find_map`` from ``start`` (from ``init`` where the model
+    refuses ``start``)."""
+    hessians, gradients = [], 0
 
     def hessian(z):
         hessians.append(None)
         return exact_hessian(space, z)
 
-    gradients = 0
-    if guess is not None:
-        evaluate = partial(grad_or_refused, space)
-        u, g = evaluate(guess)
-        gradients += 1
-        if g is None:  # the extrapolation left the parameters the model accepts: L-BFGS from init
-            guess = None
-        else:
-            z, u, g, h, trials = polish(evaluate, hessian, guess, u, g, hessian(guess), NEWTON_STEPS)
-            gradients += trials
-            if newton_decrement(g, h) <= CONVERGED:
-                return z, float(u), h, (gradients, len(hessians))
-    z, u, _, h, evaluations = find_map(space, hessian, progress=False, start=guess)
-    return z, u, h, (gradients + evaluations, len(hessians))
+    for mode in sorted(known, key=lambda m: _whitened(start - m.z, m.hessian)):
+        reached, evaluations = _chord(space, start, mode)
+        gradients += evaluations
+        if reached:
+            return None, (gradients, 0)
+    evaluate = partial(grad_or_refused, space)
+    u, g = evaluate(start)
+    gradients += 1
+    if g is not None:
+        z, u, g, h, trials = polish(evaluate, hessian, start, u, g, hessian(start), NEWTON_STEPS)
+        gradients += trials
+        if newton_decrement(g, h) <= CONVERGED:
+            return (z, float(u), h), (gradients, len(hessians))
+    z, u, _, h, evaluations = find_map(space, hessian, progress=False, start=start if g is not None else None)
+    return (z, u, h), (gradients + evaluations, len(hessians))
+
+
+def _chord(space, z, mode):
+    """Whether the chord iteration z <- z - H^-1 grad U(z) on ``mode``'s Hessian H takes z into
+    ``mode`` (within SAME_MODE whitened units), nearer to it at every step, in at most CHORD_STEPS:
+    near a mode it contracts at the rate |I - H^-1 H(z)| < 1, so a start it takes there lies in that
+    mode's basin, found without a Hessian. Returns (reached, gradient evaluations)."""
+    chol = torch.linalg.cholesky((mode.hessian + mode.hessian.T) / 2)
+    before = _whitened(z - mode.z, mode.hessian)
+    for n in range(1, CHORD_STEPS + 1):
+        _, g = grad_or_refused(space, z)
+        if g is None:
+            return False, n
+        z = z - torch.cholesky_solve(g[:, None], chol)[:, 0]
+        after = _whitened(z - mode.z, mode.hessian)
+        if after <= SAME_MODE:
+            return True, n
+        if not after < before:
+            return False, n
+        before = after
+    return False, CHORD_STEPS
+
+
+def _whitened(d, h) -> float:
+    """|d| in the metric of h: sqrt(d^T h d)."""
+    return math.sqrt(max(float(d @ h @ d), 0.0))
