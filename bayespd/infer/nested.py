@@ -17,14 +17,16 @@ H_m(tau_j)^-1) over (grid point, mode) with those masses. Exact for a theta Gaus
 to the grid's quadrature error; for separated modes, each mode's Laplace error.
 
 Which modes: a conditional with several modes makes one walk along the grid take whichever its
-path meets (the MD fit's tau = 1 %: two runs 3e-8 apart met modes 2.17 nats apart). So every grid
-point is searched from ``init``, and every mode found is continued to both neighbouring points
-(from its branch's linear extrapolation in log tau); modes new in a sweep are continued in the next,
-until a sweep finds none. The result is the closure of those searches, the same whichever point a
-walk would have started from. Each search: trust-region Newton steps on the exact Hessian
-(``find_map``, L-BFGS first, where they do not converge); a start that a chord iteration on the
-Hessian of a mode already found takes into it ends there, with gradients only (the continuations
-that meet a known mode, most of them).
+path meets (models/md_dispersion.py on the MD data has two modes, 2.0-2.2 nats apart, at tau >= 2 %;
+two walks from phase-1 optima 3e-8 apart gave tau means of 4.2 and 3.0 %). So every grid point is
+searched from ``init``, and every mode found is continued to both neighbouring points (from its
+branch's linear extrapolation in log tau); modes new in a sweep are continued in the next, until a
+sweep finds none. The result is the closure of those searches, the same whichever point a walk would
+have started from. A mode that no search meets is still missed (a minor mode at every tau where
+another exists, with the start in the other's basin: tests/infer/test_nested_bimodal.py). Each
+search: trust-region Newton steps on the exact Hessian (``find_map``, L-BFGS first, where they do
+not converge); a start that a chord iteration on the Hessian of a mode already found takes into it
+ends there, with gradients only (most continuations).
 """
 
 import math
@@ -45,7 +47,7 @@ from .space import Unconstrained
 from .trust_region import polish
 
 
-NEWTON_STEPS = 30  # trust-region Newton trials from a predicted conditional mode before L-BFGS takes over
+NEWTON_STEPS = 30  # trust-region Newton trials from a search's start before L-BFGS takes over
 CONVERGED = 1e-6  # Newton decrement at a mode (find_map's test: 1e-3 posterior sd from the quadratic model's mode)
 SAME_MODE = 1e-2  # whitened distance (in each end's Hessian metric) within which two search ends are one mode
 CHORD_STEPS = 20  # chord iterations (gradients only) that may take a start into a mode already found
