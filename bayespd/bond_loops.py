@@ -107,7 +107,8 @@ def claimed(task, count: int, threads: int, redo: bool = True) -> list:
     tasks that were under way elsewhere. A task may therefore run twice, once late: it must
     write nothing but its result, or the same bits to arrays of its own call. ``redo=False``:
     each task runs once and the caller waits for those the pool threads claimed (tasks that
-    write into arrays the caller hands on)."""
+    write into arrays the caller hands on; never from inside a task, whose pool thread it would
+    wait on)."""
     results, lock, claim = [None] * count, threading.Lock(), itertools.count()
 
     def attempt(t):
