@@ -6,7 +6,8 @@
   periodic. n1 = n2 = 0 (a uniform force: no equilibrium on a periodic sheet) is left out, which
   leaves 6 * 6 * 2 - 2 = 70 loads, the paper's count.
 * ``unseen_cases``: eq 5.1's loads on waves the training set lacks (max(n1, n2) = 6 or 7, both
-  axes of the symbol), validation loads that test a model error off the training orbits (issue 28).
+  axes of the symbol), validation loads that test a model error off the training orbits (issue 28);
+  ``blind_cases``: a second such set, for the model error sized on the first.
 * ``disks`` (eqs 5.2-5.3, Table 1): +C on a disk of radius R at the centre and -C on the disk
   centred on the periodic boundary (the two half-disks at j = -1, +1), profile
   cos(pi/2 min(1, r/R)). The paper's L = 50 is half the box.
@@ -55,6 +56,17 @@ def unseen_cases(max_mode: int = 5) -> list[tuple[int, int, int]]:
     m1, m2, j = max_mode + 1, max_mode + 2, max(1, max_mode // 2)
     return [(m1, 0, 0), (0, m1, 1), (m2, 0, 1), (0, m2, 0), (m1, 0, 1), (0, m1, 0),
             (m1, j, 0), (j, m1, 1), (m2, j, 1), (j, m2, 0)]
+
+
+def blind_cases(max_mode: int = 5) -> list[tuple[int, int, int]]:
+    """(n1, n2, axis) of a second set of sinusoids outside ``sinusoidal_cases(max_mode)`` and
+    ``unseen_cases(max_mode)``, fixed before the unseen bands' model error was sized on the first:
+    the mixed waves (m, j) and (j, m), m = max_mode + 1, max_mode + 2, j = 1 and max_mode // 2 + 1,
+    each loaded along both axes, those of ``unseen_cases`` left out (16 for ``max_mode`` = 5; |k| h
+    up to 1.09 times the training (5, 5)'s, at (3, 7) on the MD sheet)."""
+    seen = set(unseen_cases(max_mode))
+    return [case for m in (max_mode + 1, max_mode + 2) for j in sorted({1, max_mode // 2 + 1})
+            for case in ((m, j, 0), (m, j, 1), (j, m, 0), (j, m, 1)) if case not in seen]
 
 
 def sinusoidal(x: np.ndarray, box: np.ndarray, n1: int, n2: int, axis: int, strain: float) -> np.ndarray:

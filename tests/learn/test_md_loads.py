@@ -38,6 +38,21 @@ def test_unseen_waves_are_off_the_training_orbits_and_inside_their_range(sheet):
         md_loads.unseen_cases(0)
 
 
+def test_blind_waves_are_new_to_both_sets(sheet):
+    """Sixteen loads on eight mixed waves, each along both axes, none on a training orbit nor
+    among the unseen set's, |k| at most 1.1 times the training set's largest (1.09 at (3, 7) on the sheet)."""
+    x, box = sheet
+    cases = md_loads.blind_cases()
+    waves = {(a, b) for a, b, _ in cases}
+    assert len(set(cases)) == 16 and len(waves) == 8 and all(max(w) > 5 and min(w) > 0 for w in waves)
+    assert not waves & {(a, b) for a, b, _ in md_loads.sinusoidal_cases()}
+    assert not set(cases) & set(md_loads.unseen_cases())
+    wavenumber = [np.hypot(*(2 * np.pi * np.array([a, b]) / box)) for a, b, _ in cases]
+    assert max(wavenumber) < 1.1 * np.hypot(*(2 * np.pi * np.array([5, 5]) / box))
+    with pytest.raises(ValueError, match="largest mode"):
+        md_loads.blind_cases(0)
+
+
 @pytest.mark.parametrize("case", range(1, 11))
 def test_disk_loads_are_self_equilibrated(sheet, case):
     """+1 disk at the centre, -1 across the periodic boundary: the net force is the lattice
