@@ -225,8 +225,9 @@ def bayes(best, data, md_moduli, quick, structured=True):
     training compliances, plus the predicted record's own measurement error; at the waves without a
     training orbit the error drawn from bayespd.learn.wave_gp's GP (amplitude growing in |k| h)
     conditional given the training orbits', widened by its frame test, on the training waves the
-    shells' draw; plus the response no compliance holds, white, of the training records' off-orbit
-    size on the shells of |k| h the load excites (``unheld_response_sd``); for comparison the same
+    shells' draw; plus the response no compliance holds, white, of the size of the training records'
+    part beyond their measured compliance on the shells of |k| h the load excites
+    (``unheld_response_sd``); for comparison the same
     without that floor, the stationary GP widened by its own frame test (the previous default), the
     shells' draw everywhere, the offset from its prior N(0, tau^2), the training waves' own model
     errors fixed at their conditional given the draw's measured ones, and the growing GP everywhere
