@@ -123,11 +123,13 @@ def claimed(task, count: int, threads: int, redo: bool = True) -> list:
 
     others = [_pool(threads - 1).submit(work) for _ in range(threads - 1)]
     work()
-    for t in range(count):
-        if redo and results[t] is None:
-            attempt(t)
-    for other in others if not redo else ():
-        other.result()
+    if redo:
+        for t in range(count):
+            if results[t] is None:
+                attempt(t)
+    else:
+        for other in others:
+            other.result()
     return [r[0] for r in results]
 
 

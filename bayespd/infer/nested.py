@@ -122,7 +122,8 @@ def nested_laplace(model, data: dict, site: str, grid, init: dict, num_samples: 
             values[site] = grid[j] * torch.exp(cell)
             parts.append(values)
     draws = {k: torch.cat([p[k] for p in parts]).numpy() for k in parts[0]}
-    point_weights = np.exp(log_marginal - top) / np.exp(log_marginal - top).sum()
+    point_weights = np.exp(log_marginal - top)
+    point_weights /= point_weights.sum()
     return {"draws": draws, "grid": grid.tolist(), "log_marginal": (log_marginal - top).tolist(),
             "weights": point_weights.tolist(), "end_weights": [float(point_weights[0]), float(point_weights[-1])],
             "mode_log_masses": [[m - top for m in point] for point in masses], "searches": searches.tolist(),
