@@ -21,6 +21,9 @@ from bayespd.problem import Scene
 from bayespd.validate import count, positive
 
 
+NODE_ZERO = (0, 1)  # K's rows of node 0's two dofs: the symbol's
+
+
 def periodic_grid(box, n: int):
     """Cell-centred nodes (n * n, 2) on [0, Lx) x [0, Ly) and their ``Particles`` (thickness 1,
     cell area hx hy, h = sqrt(hx hy))."""
@@ -83,14 +86,14 @@ class PeriodicSheet:
         """Entries of K's two rows of node 0 on the pattern: (positions, row component, column
         node, column component)."""
         pat = self.material.pattern
-        at = np.flatnonzero(pat.rows < 2)
+        at = pat.in_rows(NODE_ZERO)
         return at, pat.rows[at], pat.cols[at] // 2, pat.cols[at] % 2
 
     def symbol(self, params: dict, wavevectors: torch.Tensor) -> torch.Tensor:
         """The 2x2 symbol S(k) = sum_j K_0j cos(k . xi_0j) (k, 2, 2) of the translation-invariant
         operator, whose eigenvalues are K's eigenvalues at the lattice wavevectors; differentiable."""
         at, a, j, b = self._row
-        values = self.material.stiffness(params)[torch.as_tensor(at)]
+        values = self.material.stiffness(params, NODE_ZERO)
         x = self.material.particles.x
         box = self.box
         off = x[j] - x[0]

@@ -130,8 +130,8 @@ class BondSums:
     def structure(self) -> sp.csr_matrix:
         return self.explicit.structure()
 
-    def values(self, data, w, pattern):
-        return self.explicit.values(self.explicit_data(data), w, pattern)
+    def values(self, data, w, pattern, rows=None):
+        return self.explicit.values(self.explicit_data(data), w, pattern, rows)
 
 
 def _family_ends(i: np.ndarray, j: np.ndarray, n: int):

@@ -150,6 +150,10 @@ class Pattern:
             raise KeyError("an entry is not in the pattern")
         return idx
 
+    def in_rows(self, rows) -> np.ndarray:
+        """Entry indices (increasing) of the entries in the given rows."""
+        return np.flatnonzero(np.isin(self.rows, np.asarray(rows, dtype=np.int64)))
+
     @cached_property
     def _csc_index(self):
         """(indices, indptr) in the narrowest dtype scipy accepts, converted once."""

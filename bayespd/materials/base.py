@@ -150,9 +150,10 @@ class Material(ABC):
         moduli = self.moduli(params)
         return sum(self.energy_parts(moduli, params, u, self.bond_correction(moduli, params)))
 
-    def stiffness(self, params: dict) -> torch.Tensor:
-        """Values of K(params) on ``self.pattern``, differentiable (twice)."""
-        return sum(g.values(d, w, self.pattern) for g, d, w in self.terms(params))
+    def stiffness(self, params: dict, rows=None) -> torch.Tensor:
+        """Values of K(params) on ``self.pattern`` (on its entries in K's ``rows`` only, in the
+        pattern's order, when given), differentiable (twice)."""
+        return sum(g.values(d, w, self.pattern, rows) for g, d, w in self.terms(params))
 
     def numeric_stiffness(self, params: dict, intact=None) -> torch.Tensor:
         """The values of K (at ``intact``, see ``terms``) assembled by scipy (no autograd

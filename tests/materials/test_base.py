@@ -93,6 +93,25 @@ def test_numeric_stiffness_equals_the_differentiable_stiffness(lattice, law):
 
 
 @pytest.mark.parametrize("law", LAWS)
+def test_stiffness_in_chosen_rows_is_those_rows_of_the_stiffness_with_their_gradient(lattice, law):
+    """K's entries in a few rows (unsorted, repeated, a node's two dofs and one more) from the
+    products of those rows alone: the full stiffness's entries there, in the pattern's order, to
+    rounding, and so is their gradient in every modulus field."""
+    p, bonds = lattice
+    mat = law(p, bonds)
+    params = {k: v.clone().requires_grad_() if torch.is_tensor(v) else v for k, v in params_for(mat, p.n).items()}
+    rows = (21, 8, 9, 21)
+    at = mat.pattern.in_rows(rows)
+    assert set(mat.pattern.rows[at]) == {8, 9, 21} and np.all(np.diff(at) > 0)
+    full, some = mat.stiffness(params)[torch.as_tensor(at)], mat.stiffness(params, rows)
+    torch.testing.assert_close(some, full, rtol=1e-14, atol=1e-14 * float(full.detach().abs().max()))
+    weights = torch.linspace(-1.0, 2.0, len(at), dtype=torch.float64)
+    moduli = [v for v in params.values() if torch.is_tensor(v)]
+    torch.testing.assert_close(torch.autograd.grad((weights * some).sum(), moduli),
+                               torch.autograd.grad((weights * full).sum(), moduli))
+
+
+@pytest.mark.parametrize("law", LAWS)
 def test_form_is_v_K_u_and_energy_is_half_u_K_u(lattice, law):
     """The matrix-free v^T K u and u^T K u / 2 equal the products with the assembled K, for
     v != u, to 1e-12 of |v| |K| |u| (sums of O(bonds) products)."""
