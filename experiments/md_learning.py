@@ -11,7 +11,8 @@ refitted at the chosen horizon, s0 minimising its displacement error over the fi
 record (bayespd.learn.discrepancy); ``--surface``: phase 2 with the free-surface-corrected LPS of
 eq 3.18 (bayespd.learn.free_surface) in place of the exact-kinematics LPS; then part 4's tests: the
 second half, the pulse run, the 3.17 A grid, with the crack-length histories; a grid posterior of
-s0 with 90 % predictive bands; the same phase 2 (without the s0 posterior) at the paper's horizon
+s0 with 90 % predictive bands under five noise models, the one reported chosen by leave-future-out
+on the training frames; the same phase 2 (without the s0 posterior) at the paper's horizon
 delta = 4 h as a reported variant (``phase2_paper_horizon``). Bayes: the posterior of
 models/md_dispersion.py (nested Laplace: tau by quadrature; the measured compliance per wave, a
 structured model error, with a measurement error from the training records' off-orbit response;
@@ -181,7 +182,7 @@ def phase_two(kernel, quick, out, surface: bool, diagnostics: bool = True):
         posterior = s0_posterior(sc, half, S0_BOUNDS, draws=40 if quick else 200)
         posterior["wall_time_s"] = time.perf_counter() - t
         print({k: {a: b for a, b in v.items() if not a.startswith(("crack", "log_evidence"))}
-               for k, v in posterior.items() if isinstance(v, dict)}, flush=True)
+               for k, v in posterior.items() if isinstance(v, dict)}, "chosen:", posterior["chosen"], flush=True)
     return {"s0": found.s0, "training_displacement_rel_error": found.error,
             "training_displacement_rel_error_no_damage": found.error_intact,
             "evaluations": [{"s0": s, "error": e} for s, e in found.evaluations], "fit_wall_time_s": found.wall_time_s,
@@ -450,10 +451,13 @@ def main():
         targets[f"moduli_{k}_interval90_covers_md"] = {"value": covered, "target": True, "passed": bool(covered)}
     inside = S0_BOUNDS[0] * 1.05 < two["s0"] < S0_BOUNDS[1] / 1.05
     targets["s0_interior_minimum"] = {"value": two["s0"], "target": f"inside {S0_BOUNDS}", "passed": inside}
-    for name, post in (two["s0_posterior"] or {}).items():
-        if isinstance(post, dict) and "extrapolation_band90_node_frame_coverage" in post:
-            cover = post["extrapolation_band90_node_frame_coverage"]
-            targets[f"s0_{name}_band90_covers_80pct_node_frames"] = {"value": cover, "target": 0.8, "passed": cover >= 0.8}
+    s0_post = two["s0_posterior"]
+    if s0_post:  # the noise model chosen on the training frames alone (leave-future-out); the others are in metrics.json
+        chosen = s0_post[s0_post["chosen"]]
+        for key, target in (("extrapolation_band90_node_frame_coverage", "s0_band90_covers_80pct_node_frames"),
+                            ("crack_length_md_inside_band_share_of_frames", "s0_crack_length_band90_covers_md_80pct_frames")):
+            targets[target] = {"value": chosen[key], "target": 0.8, "passed": chosen[key] >= 0.8,
+                               "noise_model": s0_post["chosen"]}
     for test, (disp, dmg) in PAPER.items():
         e = two["tests"][test]["frames" if test == "extrapolation" else "whole_record"]
         for kind, paper in (("displacement", disp), ("damage", dmg)):

@@ -26,6 +26,7 @@ import torch
 from bayespd.bonds import find_bonds, precrack
 from bayespd.damage import DamageIndex
 from bayespd.discretize import from_points
+from bayespd.infer.calibration import interval_score
 from bayespd.influence import Bernstein
 from bayespd.learn.damage_error import cone_average, lagged, shifted, straight_crack_intact
 from bayespd.learn.discrepancy import count_damage, relative_error, relative_mse
@@ -175,10 +176,15 @@ def evaluate(sc: Scene, s0, frames=slice(None)) -> dict:
             "crack_md": crack_history(sc.time, sc.tip)}
 
 
-def s0_posterior(sc: Scene, half: int, bounds, draws: int = 200, seed: int = 0) -> dict:
-    """Grid posteriors of log s0 from the training frames and their 90 % predictive bands.
+NOISE_MODELS = ("iid", "per_frame", "relative_iid", "relative_per_frame", "relative_correlated")
+ALPHA = 0.1  # the bands' level: central 90 % intervals
 
-    Likelihood: u_md = u_pd(s0) + e on the free nodes of frames 1 .. half - 1, e Gaussian with sigma
+
+def s0_posterior(sc: Scene, half: int, bounds, draws: int = 200, seed: int = 0) -> dict:
+    """Grid posteriors of log s0 from the training frames under five noise models, 90 % predictive
+    bands for frames half .. end, and the model chosen by leave-future-out on the training frames.
+
+    Likelihood: u_md = u_pd(s0) + e on the free nodes of the fitted frames, e Gaussian with sigma
     marginalised under p(sigma) ~ 1/sigma: p(s0 | data) ~ SSE(s0)^(-n/2); prior uniform in log s0.
     Two readings of n: every nodal value independent ("iid", n = 2 x nodes x frames: ignores the
     correlation of model error over space, so too narrow) and one independent value per frame
@@ -188,65 +194,72 @@ def s0_posterior(sc: Scene, half: int, bounds, draws: int = 200, seed: int = 0) 
     "relative_correlated": ``bayespd.learn.model_error``'s term (``_relative_correlated``). Grid:
     61 points evenly in log over the prior's ``bounds``, one full-record run each. Predictive:
     ``draws`` s0 from the grid weights, each run plus its noise per value (sd sigma(s0), or
-    r(s0) s_t of the predicted frame); bands over frames half .. end."""
+    r(s0) s_t of the predicted frame).
+
+    Choice (``chosen``): each model fitted to frames 1 .. half / 2 - 1 predicts frames half / 2 ..
+    half - 1 (the training frames only; they hold the crack's initiation), scored by the mean
+    interval score of its 90 % bands over those values (Gneiting & Raftery 2007 eq 43: width plus
+    2 / alpha times the miss, a proper score of the interval); the lowest is the model the bands
+    are reported with (Buerkner, Gabry & Vehtari 2020's leave-future-out, one split)."""
     grid = np.exp(np.linspace(np.log(bounds[0]), np.log(bounds[1]), 61))
-    free = ~sc.fixed
     runs = [sc.run(s) for s in grid]
-    values = int(free.sum() * 2 * (half - 1))
-    sse = np.array([((r.u[1:half, free] - sc.u[1:half, free]) ** 2).sum() for r in runs])
-    sigma = np.sqrt(sse / values)
-    scale = np.array([np.sqrt((r.u[1:half, free] ** 2).mean((1, 2))) for r in runs])  # s_t, (grid, frames)
-    sse_rel = np.array([(((r.u[1:half, free] - sc.u[1:half, free]) / s[:, None, None]) ** 2).sum()
-                        for r, s in zip(runs, scale)])
-    late = slice(half, None)
-    data = sc.u[late][:, free]
     md_len = np.asarray(crack_history(sc.time, sc.tip)["length_A"])
+    cut = half // 2
+    held = {name: _predictive(sc, runs, grid, name, cut, slice(cut, half), draws, seed) for name in NOISE_MODELS}
+    scores = {name: interval_score(pred, data, 1 - ALPHA) for name, (_, _, pred, data, _) in held.items()}
     out = {}
-
-    def sd(k, relative):
-        u = runs[k].u[late][:, free]
-        return np.sqrt(sse_rel[k] / values * (u**2).mean((1, 2)))[:, None, None] if relative else sigma[k]
-
-    for name, n, relative in (("iid", values, False), ("per_frame", half - 1, False),
-                              ("relative_iid", values, True), ("relative_per_frame", half - 1, True)):
-        if relative:
-            logp = -0.5 * n * np.log(sse_rel / sse_rel.min()) - n / (half - 1) * np.log(scale).sum(1)
-        else:
-            logp = -0.5 * n * np.log(sse / sse.min())
-        w = np.exp(logp - logp.max())
-        w /= w.sum()
-        rng = np.random.default_rng(seed)
-        pick = rng.choice(len(grid), size=draws, p=w)
-        pred = np.stack([runs[k].u[late][:, free] + sd(k, relative) * rng.standard_normal(data.shape) for k in pick])
-        out[name] = {"n": int(n), **_bands(sc, runs, grid, w, pick, pred, data, md_len)}
-    out["relative_correlated"] = _relative_correlated(sc, runs, grid, half, scale, data, md_len, draws, seed)
-    return {"grid": grid.tolist(), "training_sse_A2": sse.tolist(), "sigma_at_best_A": float(sigma.min()),
-            "values": values, **out}
-
-
-def _bands(sc: Scene, runs, grid, w, pick, pred, data, md_len) -> dict:
-    """The s0 quantiles of the grid weights ``w``, and the 90 % bands of the predictions ``pred``
-    (draws at the grid points ``pick``) and of their crack lengths, with the share of the MD data inside."""
-    lo, hi = np.quantile(pred, [0.05, 0.95], axis=0)
-    lengths = np.stack([crack_history(sc.time, pd_tip(sc, runs[k]))["length_A"] for k in pick])
-    c_lo, c_hi = np.quantile(lengths, [0.05, 0.95], axis=0)
-    cdf = np.cumsum(w)
-    return {"s0_q05": float(grid[np.searchsorted(cdf, 0.05)]), "s0_median": float(grid[np.searchsorted(cdf, 0.5)]),
-            "s0_q95": float(grid[np.searchsorted(cdf, 0.95)]), "weight_at_grid_ends": float(w[0] + w[-1]),
-            "extrapolation_band90_node_frame_coverage": float(((data >= lo) & (data <= hi)).all(-1).mean()),
-            "crack_length_band90_A": {"q05": c_lo.tolist(), "q95": c_hi.tolist()},
-            "crack_length_md_inside_band_share_of_frames": float(((md_len >= c_lo) & (md_len <= c_hi)).mean())}
-
-
-def _relative_correlated(sc: Scene, runs, grid, half: int, scales, data, md_len, draws: int, seed: int) -> dict:
-    """The s0 posterior and 90 % bands with ``bayespd.learn.model_error``'s term: error relative to
-    each frame's rms PD displacement (``scales``: s_t of each run's training frames), exponentially
-    correlated in space and time, (ell, tau) by evidence at the best-fitting s0 on grids (h/2 .. 64 h,
-    half a frame .. 32 frames), r marginalised."""
+    for name in NOISE_MODELS:
+        w, pick, pred, data, fitted = _predictive(sc, runs, grid, name, half, slice(half, None), draws, seed)
+        lo, hi = np.quantile(held[name][2], [ALPHA / 2, 1 - ALPHA / 2], axis=0)
+        out[name] = {**fitted, "leave_future_out_interval_score_A": scores[name],
+                     "leave_future_out_band90_node_frame_coverage": float(_inside(held[name][3], lo, hi).mean()),
+                     **_bands(sc, runs, grid, w, pick, pred, data, md_len)}
     free = ~sc.fixed
-    train = slice(1, half)
+    sse = np.array([((r.u[1:half, free] - sc.u[1:half, free]) ** 2).sum() for r in runs])
+    return {"grid": grid.tolist(), "training_sse_A2": sse.tolist(), "leave_future_out_frames": [cut, half],
+            "chosen": min(scores, key=scores.get), **out}
+
+
+def _predictive(sc: Scene, runs, grid, name: str, end: int, late: slice, draws: int, seed: int):
+    """(grid weights, the draws' grid points, predictive draws (draws, frames, free nodes, 2), the
+    MD data there, the fit's numbers) of noise model ``name`` fitted to frames 1 .. end - 1 and
+    predicting frames ``late`` (``s0_posterior``'s docstring)."""
+    free = ~sc.fixed
+    if name == "relative_correlated":
+        return _relative_correlated(sc, runs, grid, end, late, draws, seed)
+    relative, per_frame = name.startswith("relative"), name.endswith("per_frame")
+    residuals = [r.u[1:end, free] - sc.u[1:end, free] for r in runs]
+    values = residuals[0].size
+    n = end - 1 if per_frame else values
+    scale = np.array([np.sqrt((r.u[1:end, free] ** 2).mean((1, 2))) for r in runs])  # s_t, (grid, frames)
+    if relative:
+        sse = np.array([((e / s[:, None, None]) ** 2).sum() for e, s in zip(residuals, scale)])
+        logp = -0.5 * n * np.log(sse / sse.min()) - n / (end - 1) * np.log(scale).sum(1)
+    else:
+        sse = np.array([(e**2).sum() for e in residuals])
+        logp = -0.5 * n * np.log(sse / sse.min())
+    w = np.exp(logp - logp.max())
+    w /= w.sum()
+    rng = np.random.default_rng(seed)
+    pick = rng.choice(len(grid), size=draws, p=w)
+    data = sc.u[late][:, free]
+    pred = []
+    for k in pick:
+        u = runs[k].u[late][:, free]
+        sd = np.sqrt(sse[k] / values * (u**2).mean((1, 2)))[:, None, None] if relative else np.sqrt(sse[k] / values)
+        pred.append(u + sd * rng.standard_normal(data.shape))
+    return w, pick, np.stack(pred), data, {"n": int(n)}
+
+
+def _relative_correlated(sc: Scene, runs, grid, end: int, late: slice, draws: int, seed: int):
+    """``_predictive`` for ``bayespd.learn.model_error``'s term: error relative to each frame's rms
+    PD displacement s_t, exponentially correlated in space and time, (ell, tau) by evidence at the
+    best-fitting s0 on grids (h/2 .. 64 h, half a frame .. 32 frames), r marginalised."""
+    free = ~sc.fixed
+    train = slice(1, end)
     x, t = sc.material.particles.x[free], sc.time[train]
     residuals = [sc.u[train][:, free] - r.u[train][:, free] for r in runs]
+    scales = [np.sqrt((r.u[train][:, free] ** 2).mean((1, 2))) for r in runs]
     best = int(np.argmin([((e / s[:, None, None]) ** 2).sum() for e, s in zip(residuals, scales)]))
     h, step = sc.material.bonds.h, float(np.diff(sc.time).mean())
     term, table = fit_relative_error(residuals[best], scales[best], x, t, h * 2.0 ** np.arange(-1, 7),
@@ -259,9 +272,28 @@ def _relative_correlated(sc: Scene, runs, grid, half: int, scales, data, md_len,
     pick = rng.choice(len(grid), size=draws, p=w)
     pred = []
     for k in pick:
-        u = runs[k].u[half:][:, free]
+        u = runs[k].u[late][:, free]
         r = np.sqrt(term.quadratic(residuals[k], scales[k]) / rng.chisquare(values))
         pred.append(u + term.draw(rng, np.sqrt((u**2).mean((1, 2))), r, 2))
-    return {"ell_A": term.ell, "tau_ps": term.tau, "log_evidence_ell_by_tau": table.tolist(),
-            "r_at_best": float(np.sqrt(term.quadratic(residuals[best], scales[best]) / values)),
-            **_bands(sc, runs, grid, w, pick, np.stack(pred), data, md_len)}
+    fitted = {"ell_A": term.ell, "tau_ps": term.tau, "log_evidence_ell_by_tau": table.tolist(),
+              "r_at_best": float(np.sqrt(term.quadratic(residuals[best], scales[best]) / values))}
+    return w, pick, np.stack(pred), sc.u[late][:, free], fitted
+
+
+def _inside(data, lo, hi) -> np.ndarray:
+    """Per node and frame: both components inside their bands."""
+    return ((data >= lo) & (data <= hi)).all(-1)
+
+
+def _bands(sc: Scene, runs, grid, w, pick, pred, data, md_len) -> dict:
+    """The s0 quantiles of the grid weights ``w``, and the 90 % bands of the predictions ``pred``
+    (draws at the grid points ``pick``) and of their crack lengths, with the share of the MD data inside."""
+    lo, hi = np.quantile(pred, [ALPHA / 2, 1 - ALPHA / 2], axis=0)
+    lengths = np.stack([crack_history(sc.time, pd_tip(sc, runs[k]))["length_A"] for k in pick])
+    c_lo, c_hi = np.quantile(lengths, [ALPHA / 2, 1 - ALPHA / 2], axis=0)
+    cdf = np.cumsum(w)
+    return {"s0_q05": float(grid[np.searchsorted(cdf, 0.05)]), "s0_median": float(grid[np.searchsorted(cdf, 0.5)]),
+            "s0_q95": float(grid[np.searchsorted(cdf, 0.95)]), "weight_at_grid_ends": float(w[0] + w[-1]),
+            "extrapolation_band90_node_frame_coverage": float(_inside(data, lo, hi).mean()),
+            "crack_length_band90_A": {"q05": c_lo.tolist(), "q95": c_hi.tolist()},
+            "crack_length_md_inside_band_share_of_frames": float(((md_len >= c_lo) & (md_len <= c_hi)).mean())}
