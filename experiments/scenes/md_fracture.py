@@ -176,7 +176,8 @@ def evaluate(sc: Scene, s0, frames=slice(None)) -> dict:
             "crack_md": crack_history(sc.time, sc.tip)}
 
 
-NOISE_MODELS = ("iid", "per_frame", "relative_iid", "relative_per_frame", "relative_correlated")
+NOISE_MODELS = ("iid", "per_frame", "relative_iid", "relative_per_frame", "relative_growing", "relative_correlated")
+GROWTH = np.linspace(0.0, 3.0, 61)  # "relative_growing"'s exponents gamma: sd r s_t (t / t_fit)^gamma
 ALPHA = 0.1  # the bands' level: central 90 % intervals
 
 
@@ -191,6 +192,10 @@ def s0_posterior(sc: Scene, half: int, bounds, draws: int = 200, seed: int = 0) 
     ("per_frame", n = frames: the error field of a frame moves as one). "relative_*": the same with
     e's sd r s_t relative to the frame's rms PD displacement s_t(s0) (the error grows with the field):
     p(s0 | data) ~ SSE_rel^(-n/2) prod_t s_t^(-n / frames), SSE_rel = sum_t |e_t|^2 / s_t^2.
+    "relative_growing": relative iid with s_t times (t / t_fit)^gamma, t_fit the last fitted frame's
+    time, gamma on ``GROWTH`` (uniform prior; gamma = 0 is "relative_iid"): the relative error itself
+    grows over the training frames (5 % of the field at the first, 20-25 % later: model_error's
+    docstring), which a constant r carries into the extrapolation at its training average.
     "relative_correlated": ``bayespd.learn.model_error``'s term (``_relative_correlated``). Grid:
     61 points evenly in log over the prior's ``bounds``, one full-record run each. Predictive:
     ``draws`` s0 from the grid weights, each run plus its noise per value (sd sigma(s0), or
@@ -228,27 +233,35 @@ def _predictive(sc: Scene, runs, grid, name: str, end: int, late: slice, draws: 
     if name == "relative_correlated":
         return _relative_correlated(sc, runs, grid, end, late, draws, seed)
     relative, per_frame = name.startswith("relative"), name.endswith("per_frame")
+    growth = GROWTH if name == "relative_growing" else np.zeros(1)
     residuals = [r.u[1:end, free] - sc.u[1:end, free] for r in runs]
     values = residuals[0].size
     n = end - 1 if per_frame else values
-    scale = np.array([np.sqrt((r.u[1:end, free] ** 2).mean((1, 2))) for r in runs])  # s_t, (grid, frames)
-    if relative:
-        sse = np.array([((e / s[:, None, None]) ** 2).sum() for e, s in zip(residuals, scale)])
-        logp = -0.5 * n * np.log(sse / sse.min()) - n / (end - 1) * np.log(scale).sum(1)
+    t = sc.time
+    if relative:  # s_t g_t per (grid, growth, frame): rms PD displacement times (t / t_fit)^gamma
+        rms = np.array([np.sqrt((r.u[1:end, free] ** 2).mean((1, 2))) for r in runs])
+        s = rms[:, None, :] * (t[1:end] / t[end - 1])[None, None, :] ** growth[None, :, None]
     else:
-        sse = np.array([(e**2).sum() for e in residuals])
-        logp = -0.5 * n * np.log(sse / sse.min())
-    w = np.exp(logp - logp.max())
-    w /= w.sum()
+        s = np.ones((len(runs), 1, end - 1))
+    sse = np.array([[((e / sg[:, None, None]) ** 2).sum() for sg in sk] for e, sk in zip(residuals, s)])
+    logp = -0.5 * n * np.log(sse / sse.min()) - n / (end - 1) * np.log(s).sum(-1)  # (grid, growth)
+    joint = np.exp(logp - logp.max()).ravel()
+    joint /= joint.sum()
     rng = np.random.default_rng(seed)
-    pick = rng.choice(len(grid), size=draws, p=w)
+    chosen = rng.choice(len(joint), size=draws, p=joint)
+    pick, shape = chosen // len(growth), chosen % len(growth)
     data = sc.u[late][:, free]
     pred = []
-    for k in pick:
+    for k, j in zip(pick, shape):
         u = runs[k].u[late][:, free]
-        sd = np.sqrt(sse[k] / values * (u**2).mean((1, 2)))[:, None, None] if relative else np.sqrt(sse[k] / values)
+        sd = np.sqrt(sse[k, j] / values)
+        if relative:
+            sd = sd * (np.sqrt((u**2).mean((1, 2))) * (t[late] / t[end - 1]) ** growth[j])[:, None, None]
         pred.append(u + sd * rng.standard_normal(data.shape))
-    return w, pick, np.stack(pred), data, {"n": int(n)}
+    fitted = {"n": int(n)}
+    if len(growth) > 1:
+        fitted["growth_exponent_posterior"] = dict(zip(growth.tolist(), joint.reshape(len(runs), -1).sum(0).tolist()))
+    return joint.reshape(len(runs), -1).sum(1), pick, np.stack(pred), data, fitted
 
 
 def _relative_correlated(sc: Scene, runs, grid, end: int, late: slice, draws: int, seed: int):
