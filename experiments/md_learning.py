@@ -215,6 +215,28 @@ def paper_horizon(data, quick, out):
     return {"delta_over_h": PAPER_HORIZON, **two}
 
 
+def kernel_init(best, plane: KernelShape) -> dict:
+    """Start values of the kernel sites at the phase-1 fit ``best``."""
+    return {"lam_plus_mu": best["lambda"] + best["mu"], "mu": best["mu"], "delta": best["delta_A"],
+            "shape": plane.coordinates(best["D"])}
+
+
+def compliance_model(best, data):
+    """models/md_dispersion.py on the training records: (model, {"C": measured compliances}, start
+    values at the phase-1 fit ``best``, (orbits, off-diagonal flags, off-orbit response, sigma_m))."""
+    sheet = data["sheet"]
+    f, u = data["train"]
+    y = sheet.zero_mean(u)
+    n = int(round(np.sqrt(sheet.n)))
+    modes, C, off = measured_compliance(f, y, n)
+    harmonics = off_orbit_response(f, y, n)
+    sigma_m = float(harmonics.pow(2).mean().sqrt())  # the rms response no compliance holds
+    model = md_dispersion(sheet, modes * 2 * np.pi / sheet.box, off, SHELLS, nominal=best["mu"], measurement=sigma_m)
+    init = {**kernel_init(best, KernelShape(sheet.material.influence)),
+            "s": np.full(len(SHELLS) + 1, best["train_rel_error_mean"]), "tau": best["train_rel_error_mean"]}
+    return model, {"C": C}, init, (modes, off, harmonics, sigma_m)
+
+
 def bayes(best, data, md_moduli, quick, structured=True):
     """Posterior of models/md_dispersion.py (``structured``: one relative compliance error
     per orbit of the training waves on shells of |k| h plus an offset common to all, from the
@@ -239,19 +261,12 @@ def bayes(best, data, md_moduli, quick, structured=True):
     y = sheet.zero_mean(u)
     n, h = int(round(np.sqrt(sheet.n))), sheet.material.particles.h
     plane = KernelShape(sheet.material.influence)
-    init = {"lam_plus_mu": best["lambda"] + best["mu"], "mu": best["mu"], "delta": best["delta_A"],
-            "shape": plane.coordinates(best["D"])}
     if structured:
-        modes, C, off = measured_compliance(f, y, n)
-        harmonics = off_orbit_response(f, y, n)
-        sigma_m = float(harmonics.pow(2).mean().sqrt())  # the rms response no compliance holds
-        model = md_dispersion(sheet, modes * 2 * np.pi / sheet.box, off, SHELLS, nominal=best["mu"],
-                              measurement=sigma_m)
-        init |= {"s": np.full(len(SHELLS) + 1, best["train_rel_error_mean"]), "tau": best["train_rel_error_mean"]}
-        observed, names = {"C": C}, ("s", "tau")
+        model, observed, init, (modes, off, harmonics, sigma_m) = compliance_model(best, data)
+        C, names = observed["C"], ("s", "tau")
     else:
         model = md_kernel(sheet, f, y.pow(2).mean((1, 2)).sqrt(), nominal=best["mu"], positive_kernel=False)
-        init["sigma"] = best["train_rel_error_mean"]
+        init = {**kernel_init(best, plane), "sigma": best["train_rel_error_mean"]}
         observed, names = {"y": y}, ("sigma",)
     t = time.perf_counter()
     if structured:  # tau, the scale of one 3-number offset, barely informed: its joint MAP collapses
