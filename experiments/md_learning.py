@@ -11,7 +11,7 @@ refitted at the chosen horizon, s0 minimising its displacement error over the fi
 record (bayespd.learn.discrepancy); ``--surface``: phase 2 with the free-surface-corrected LPS of
 eq 3.18 (bayespd.learn.free_surface) in place of the exact-kinematics LPS; then part 4's tests: the
 second half, the pulse run, the 3.17 A grid, with the crack-length histories; a grid posterior of
-s0 with 90 % predictive bands under five noise models, the one reported chosen by leave-future-out
+s0 with 90 % predictive bands under six noise models, the one reported chosen by leave-future-out
 on the training frames; the same phase 2 (without the s0 posterior) at the paper's horizon
 delta = 4 h as a reported variant (``phase2_paper_horizon``). Bayes: the posterior of
 models/md_dispersion.py (nested Laplace: tau by quadrature; the measured compliance per wave, a

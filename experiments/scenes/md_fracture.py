@@ -182,7 +182,7 @@ ALPHA = 0.1  # the bands' level: central 90 % intervals
 
 
 def s0_posterior(sc: Scene, half: int, bounds, draws: int = 200, seed: int = 0) -> dict:
-    """Grid posteriors of log s0 from the training frames under five noise models, 90 % predictive
+    """Grid posteriors of log s0 from the training frames under six noise models, 90 % predictive
     bands for frames half .. end, and the model chosen by leave-future-out on the training frames.
 
     Likelihood: u_md = u_pd(s0) + e on the free nodes of the fitted frames, e Gaussian with sigma
