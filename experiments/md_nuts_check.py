@@ -18,7 +18,9 @@ kink wherever a bond length crosses delta +- h/2 (on this sheet, h = 4.97 A, at 
 the nested Laplace's Gaussian in delta lives on one linear piece (bayespd.infer.mode's docstring);
 a NUTS chain that crosses to another piece shows as a chain of its own (R-hat, the per-chain
 summaries), so the targets below may fail for the reference's sake rather than the Laplace's.
-``delta_basins`` records the conditional modes reached from starts below those kinks at three tau.
+``delta_basins`` records where searches from starts below those kinks end at three tau (on a kink
+``find_map`` warns that the gradient does not vanish: there the potential is an upper bound on the
+region's minimum and the "log mass" no Laplace mass).
 
 Targets: NUTS converged (R-hat <= 1.01, bulk ESS >= 400 for every reported quantity, no
 divergence), so it can serve as the reference; then for each quantity the nested Laplace's mean
@@ -67,10 +69,10 @@ def summary(values: np.ndarray) -> dict:
 
 
 def delta_basins(model, observed, init: dict, taus, deltas) -> list:
-    """The conditional mode reached from ``init`` with delta moved to each of ``deltas``, at each tau
-    (``find_map``: L-BFGS, then trust-region Newton): delta, mu, the potential U and the Laplace log
-    mass (None where the Hessian is not positive definite). Modes on different linear pieces of the
-    partial-volume weights show as different deltas."""
+    """Where ``find_map`` (L-BFGS, then trust-region Newton) ends from ``init`` with delta moved to each
+    of ``deltas``, at each tau: delta, mu, the potential U and the Laplace log mass there (None where
+    the Hessian is not positive definite). Ends on different linear pieces of the partial-volume
+    weights show as different deltas."""
     found = []
     for tau in taus:
         conditioned = poutine.condition(model, data={"tau": torch.tensor(tau, dtype=torch.float64)})
