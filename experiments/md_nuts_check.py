@@ -44,6 +44,7 @@ from pyro import poutine
 from pyro.infer.autoguide.initialization import init_to_value
 
 from bayespd.infer import fit
+from bayespd.infer.calibration import central_interval
 from bayespd.infer.laplace import exact_hessian
 from bayespd.infer.mixture import laplace_log_mass
 from bayespd.infer.mode import find_map
@@ -64,7 +65,7 @@ def quantities(draws: dict) -> dict:
 
 
 def summary(values: np.ndarray) -> dict:
-    lo, hi = np.quantile(values, [0.05, 0.95])
+    lo, hi = central_interval(values)
     return {"mean": float(values.mean()), "sd": float(values.std()), "q05": float(lo), "q95": float(hi)}
 
 

@@ -187,15 +187,15 @@ class Gram:
         (some of K's rows), on the pattern's entries in those rows only (``pattern.in_rows``),
         from the entry pairs whose first entry's column is one of them (a periodic lattice's
         symbol needs one node's rows: at 400 nodes, 1/400 of the products)."""
-        k1, k2, targets = self._pair_targets(pattern, rows)
+        k1, k2, targets, size = self._pair_targets(pattern, rows)
         d = data if self._identity else data[self._order_t]
         contrib = w[self._rows_t[k1]] * d[k1] * d[k2]
-        size = pattern.nnz if rows is None else len(pattern.in_rows(rows))
         return torch.zeros(size, dtype=contrib.dtype).index_add(0, targets, contrib)
 
     def _pair_targets(self, pattern: Pattern, rows):
         """(first entries, second entries, position in ``pattern`` or in its ``in_rows(rows)``)
-        of the entry pairs ``values`` sums, kept per ``rows`` for the latest pattern."""
+        of the entry pairs ``values`` sums, and the number of entries it fills; kept per ``rows``
+        for the latest pattern."""
         key = None if rows is None else tuple(int(r) for r in rows)
         kept = self._targets.get(key)
         if kept is None or kept[0] is not pattern:
@@ -203,10 +203,11 @@ class Gram:
             if rows is not None:
                 chosen = np.isin(self.cols[k1], key)
                 k1, k2 = k1[chosen], k2[chosen]
-            position = pattern.position(self.cols[k1], self.cols[k2])
+            position, size = pattern.position(self.cols[k1], self.cols[k2]), pattern.nnz
             if rows is not None:
-                position = np.searchsorted(pattern.in_rows(rows), position)
-            kept = self._targets[key] = (pattern, *(torch.as_tensor(a) for a in (k1, k2, position)))
+                entries = pattern.in_rows(rows)
+                position, size = np.searchsorted(entries, position), len(entries)
+            kept = self._targets[key] = (pattern, *(torch.as_tensor(a) for a in (k1, k2, position)), size)
         return kept[1:]
 
     # --- node-block (BSR) form, used when self.block > 1 -------------------------------------
