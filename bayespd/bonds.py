@@ -46,6 +46,14 @@ class Bonds:
         check_horizon(delta, self.h, self.delta_max)
         return partial_volume(torch.as_tensor(self.length), delta, self.h, self.rule)
 
+    def kinks(self, lo: float, hi: float) -> np.ndarray:
+        """The horizons in [lo, hi] where a bond's weight has a kink, increasing (to 1e-9 h): its
+        partial volume at |xi| = delta +- h/2, and a clamped influence at |xi| = delta
+        (``bayespd.influence.Bernstein``: a bond beyond delta takes omega at r = delta). A model
+        built on these bonds is smooth in delta between them."""
+        ends = np.concatenate([self.length - self.h / 2, self.length, self.length + self.h / 2])
+        return np.unique(np.round(ends[(ends >= lo) & (ends <= hi)] / (1e-9 * self.h))) * (1e-9 * self.h)
+
 
 RULES = ("linear", "smooth")  # partial-volume ramps in delta (see partial_volume)
 

@@ -2,10 +2,10 @@
 
 experiments/md_learning.py reports the posterior of models/md_dispersion.py (the 2D moduli, the
 horizon, the kernel shape, the shells' relative errors s and the common offset's scale tau) by a
-nested Laplace: tau by quadrature on a grid, the rest Laplace given tau at every conditional mode
-(``bayespd.infer.nested``). That is exact for a Gaussian conditional and otherwise carries each
-mode's Laplace error; this experiment measures that error on the real posterior with the sampler
-that makes none: NUTS (``bayespd.infer.fit``, two chains of 300 + 1000 from the phase-1 fit, the dense
+nested Laplace: tau and delta by quadrature on a grid (delta's with every kink as a point), the rest
+Laplace given them at every conditional mode (``bayespd.infer.nested``). That is exact for a Gaussian
+conditional and otherwise carries each mode's Laplace error; this experiment measures that error on
+the real posterior with the sampler that makes none: NUTS (``bayespd.infer.fit``, two chains of 300 + 1000 from the phase-1 fit, the dense
 mass matrix seeded by the Laplace covariance at the MAP and adapted; unseeded, the first windows'
 trees reach depth 10 at 28 ms a gradient).
 Reads the records of experiments/md_graphene_data.py; writes runs/md_nuts_check/metrics.json:
@@ -13,11 +13,12 @@ both methods' means, sds and 90 % intervals of lambda + 2 mu, mu, delta and tau 
 chain), NUTS's R-hat, bulk ESS and divergences (per chain), each method's wall time.
 
 The potential is kinked in delta: the partial-volume weights are piecewise linear in it, with a
-kink wherever a bond length crosses delta +- h/2 (on this sheet, h = 4.97 A, at delta = 11.58,
-12.21, 12.29, 12.58 A near the posterior). HMC's leapfrog steps across a kink diverge or stall, and
-the nested Laplace's Gaussian in delta lives on one linear piece (bayespd.infer.mode's docstring);
-a NUTS chain that crosses to another piece shows as a chain of its own (R-hat, the per-chain
-summaries), so the targets below may fail for the reference's sake rather than the Laplace's.
+kink wherever a bond length crosses delta +- h/2, and the Bernstein influence, clamped beyond delta,
+kinks where a bond length equals delta (``Bonds.kinks``; on this sheet, 4.90 x 5.04 A cells, at
+11.02, 11.21, 11.58, 12.21, 12.29, 12.57 A near the posterior, whose largest peak sits on the kink
+at 11.02 A). HMC's leapfrog steps across a kink diverge or stall; a NUTS chain that crosses to
+another piece shows as a chain of its own (R-hat, the per-chain summaries), so the targets below may
+fail for the reference's sake rather than the Laplace's.
 ``delta_basins`` records where searches from starts below those kinks end at three tau (on a kink
 ``find_map`` warns that the gradient does not vanish: there the potential is an upper bound on the
 region's minimum and the "log mass" no Laplace mass).
@@ -39,7 +40,7 @@ import numpy as np
 import torch
 
 from common import quick_seed_arguments, run_dir, write_metrics
-from md_learning import TAU_GRID, compliance_model, phase_one
+from md_learning import compliance_model, phase_one, quadrature_grids
 from pyro import poutine
 from pyro.infer.autoguide.initialization import init_to_value
 
@@ -96,7 +97,8 @@ def main():
     model, observed, init, _ = compliance_model(one["best"], data)
     basins = delta_basins(model, observed, init, BASIN_TAUS, [float(init["delta"]), *BASIN_DELTAS])
     t = time.perf_counter()
-    nested = nested_laplace(model, observed, "tau", TAU_GRID, init, 4000, seed=args.seed)
+    grids = quadrature_grids(data["sheet"])
+    nested = nested_laplace(model, observed, grids, init, 4000, seed=args.seed, log=("tau",))
     nested_wall = time.perf_counter() - t
     samples, warmup = (30, 30) if args.quick else (1000, 300)
     tree = fit(model, observed, "nuts", num_samples=samples, num_warmup=warmup, num_chains=2, chains="sequential",
@@ -134,7 +136,7 @@ def main():
                            "evaluations": nested["evaluations"]},
         "nuts": {"wall_time_s": float(tree.attrs["wall_time_s"]), "num_grad_evals": int(tree.attrs["num_grad_evals"]),
                  "samples_per_chain": samples, "warmup": warmup, "chains": 2},
-        "targets": targets, "settings": {"seed": args.seed, "tau_grid": TAU_GRID.tolist(), "dense_mass": True,
+        "targets": targets, "settings": {"seed": args.seed, "grids": {k: v.tolist() for k, v in grids.items()}, "dense_mass": True,
                                          "mass_matrix_from": "laplace", "target_accept": TARGET_ACCEPT}})
 
 

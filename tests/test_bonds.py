@@ -7,6 +7,7 @@ import torch
 
 import bayespd as bp
 from bayespd.bonds import check_horizon, partial_volume, precrack
+from bayespd.influence import Bernstein
 
 
 def brute_force_2d(a, b, c0, c1):
@@ -232,3 +233,31 @@ def test_infinite_delta_max_is_refused():
     p = bp.grid_2d(4.0, 4.0, 1.0)
     with pytest.raises(ValueError, match="delta_max contains NaN or inf.*finite horizon"):
         bp.find_bonds(p, np.inf)
+
+
+def test_kinks_are_where_a_bond_length_crosses_delta_or_delta_plus_minus_half_h():
+    """On a unit lattice the bond lengths are sqrt(i^2 + j^2): the kinks in [2, 3.2] are those and
+    those +- 1/2. The summed partial volumes have a zero second difference between the +- 1/2 kinks
+    (to rounding) and one of at least a bond's slope change times the step across each (the step
+    1e-3 is below the smallest gap, 0.024); the summed influence-weighted volumes bend at the lengths
+    themselves (a Bernstein omega = (r / delta)^2, clamped to 1 beyond delta)."""
+    bonds = bp.find_bonds(bp.grid_2d(12.0, 12.0, 1.0), 3.5)
+    lengths = np.sqrt([i * i + j * j for i in range(5) for j in range(5) if i or j])
+    expected = np.unique(np.round(np.concatenate([lengths - 0.5, lengths, lengths + 0.5]), 12))
+    kinks = bonds.kinks(2.0, 3.2)
+    np.testing.assert_allclose(kinks, expected[(expected >= 2.0) & (expected <= 3.2)], atol=1e-9)
+
+    def bend(f, delta, step=1e-3):
+        w = [f(d) for d in (delta - step, delta, delta + step)]
+        return abs(w[0] - 2 * w[1] + w[2])
+
+    volume = lambda d: float(bonds.weight(d).sum())  # noqa: E731
+    ramp = np.unique(np.round(np.concatenate([lengths - 0.5, lengths + 0.5]), 12))
+    ramp = ramp[(ramp >= 2.0) & (ramp <= 3.2)]
+    assert all(bend(volume, k) > 0.9e-3 for k in ramp)
+    assert all(bend(volume, m) < 1e-9 for m in (kinks[1:] + kinks[:-1]) / 2)
+    length = torch.as_tensor(bonds.length)
+    omega = Bernstein(2)
+    influence = lambda d: float((bonds.weight(d) * omega(length, d, {"D": torch.tensor([0.0, 0.0, 1.0])})).sum())  # noqa: E731
+    at_lengths = [k for k in kinks if np.isclose(lengths, k).any()]
+    assert at_lengths and all(bend(influence, k) > 1e-4 for k in at_lengths)
