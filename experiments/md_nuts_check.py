@@ -5,9 +5,9 @@ horizon, the kernel shape, the shells' relative errors s and the common offset's
 nested Laplace: tau and delta by quadrature on a grid (delta's with every kink as a point), the rest
 Laplace given them at every conditional mode (``bayespd.infer.nested``). That is exact for a Gaussian
 conditional and otherwise carries each mode's Laplace error; this experiment measures that error on
-the real posterior with the sampler that makes none: NUTS (``bayespd.infer.fit``, two chains of 300 + 1000 from the phase-1 fit, the dense
-mass matrix seeded by the Laplace covariance at the MAP and adapted; unseeded, the first windows'
-trees reach depth 10 at 28 ms a gradient).
+the real posterior with the sampler that makes none: NUTS (``bayespd.infer.fit``, two chains of
+300 + 1000 from the phase-1 fit, the dense mass matrix seeded by the Laplace covariance at the MAP
+and adapted; unseeded, the first windows' trees reach depth 10 at 28 ms a gradient).
 Reads the records of experiments/md_graphene_data.py; writes runs/md_nuts_check/metrics.json:
 both methods' means, sds and 90 % intervals of lambda + 2 mu, mu, delta and tau (NUTS's also per
 chain), NUTS's R-hat, bulk ESS and divergences (per chain), each method's wall time.

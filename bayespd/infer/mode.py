@@ -5,7 +5,8 @@
 Laplace step's Hessian (``trust_region``). ``best_map``: the lowest of several searches,
 from the initial point and from a Latin hypercube of prior draws. A PD likelihood can have
 several basins in delta, split by kinks where a bond length crosses delta +- h/2 (the
-partial-volume weights are piecewise linear in delta): on the 64-particle calibration plate,
+partial-volume weights are piecewise linear in delta) or delta (a clamped influence; ``Bonds.kinks``
+lists both): on the 64-particle calibration plate,
 searches from the prior median end in one of three basins with potentials up to 120 nats apart,
 the lowest usually near the true delta, and a chain started in another stays there
 (``experiments/sbc.py --free-delta``).
@@ -112,9 +113,10 @@ def _warn_if_not_a_mode(g, h, u, res):
         detail = f"L-BFGS: {res.message}"
     warnings.warn(f"the MAP search ended where the gradient does not vanish (|grad| = "
                   f"{float(g.norm()):.3g}, {detail}): the potential has kinks in delta where a "
-                  "bond length crosses delta +- h/2, and a search can stop at one (a spurious "
-                  "local mode, or a mode on a kink, where a Laplace approximation is not "
-                  "defined); start elsewhere (init_values), fix delta, or use NUTS",
+                  "bond length crosses delta or delta +- h/2 (Bonds.kinks), and a search can stop "
+                  "at one (a spurious local mode, or a mode on a kink, where a Laplace "
+                  "approximation is not defined); start elsewhere (init_values), fix delta, or "
+                  "integrate delta on a grid holding its kinks (infer.nested.nested_laplace)",
                   RuntimeWarning, stacklevel=3)
 
 

@@ -7,8 +7,9 @@ other parameters can absorb what tau scales (a common offset and the moduli, mod
 the joint density grows like 1 / tau as tau falls, so the joint mode sits near tau = 0 and the
 Gaussian there is too narrow (the hierarchical funnel). It fails too for a parameter on which the
 potential is only piecewise smooth: the PD horizon delta, where the partial-volume weights are
-piecewise linear (``bayespd.bonds.partial_volume``), so the potential has kinks wherever a bond
-length crosses delta +- h/2 and its minima may sit on one (a Gaussian there has no meaning).
+piecewise linear (``bayespd.bonds.partial_volume``) and a clamped influence kinks at r = delta, so
+the potential kinks wherever a bond length crosses delta or delta +- h/2 (``Bonds.kinks``) and its
+minima may sit on a kink (a Gaussian there has no meaning; on the MD sheet most of the mass does).
 Integrating such sites out on a grid removes both: given them, the rest is smooth. Rue et al.'s
 eq 3, p(psi | y) ~ p(y, theta*(psi), psi) / p_G(theta*(psi) | psi, y), applied per mode m of the
 conditional p(theta | psi, y) and summed (its integral over theta is the sum of the modes' basins):
@@ -35,9 +36,11 @@ mostly ends in a mode already found, with gradients only). Searching every point
 from init would cost a full search each (on the MD sheet's (tau, delta) grid, 20 Hessians a point:
 the conditional mode moves by whitened distances of 2-13 per 0.05-0.4 A of delta, the kernel shape
 trading off against delta). A mode that no search meets is still missed (a minor mode at every psi
-where another exists, with the start in the other's basin: tests/infer/test_nested_bimodal.py). Each search: trust-region Newton steps on
-the exact Hessian (``find_map``, L-BFGS first, where they do not converge); a start that a chord
-iteration on the Hessian of a mode already found takes into it ends there, with gradients only.
+where another exists, with the start in the other's basin: tests/infer/test_nested_bimodal.py).
+Each search: a start that a chord iteration on the Hessian of a mode already found takes into it
+ends there, with gradients only; a continuation runs the chord iteration on its parent's Hessian,
+one exact Hessian confirming the mode; else trust-region Newton steps on the exact Hessian
+(``find_map``, L-BFGS first, where they do not converge).
 """
 
 import itertools
@@ -258,8 +261,8 @@ def _chord(space, z, hessian, target=None):
     rate |I - H^-1 H(z)| < 1, so a start it takes there lies in that mode's basin, found without a
     Hessian). Without: whether its steps shrink, each shorter than the last, to ROUNDING whitened
     units (a mode to the last digits, where its Laplace mass is taken: a mode 1e-3 sd off, the
-    decrement test's bound, shifts the log mass by 1e-3 times U's third derivative in sd units). Returns (reached,
-    the last point it contracted to, gradient evaluations)."""
+    decrement test's bound, shifts the log mass by 1e-3 times U's third derivative in sd units).
+    Returns (reached, the last point it contracted to, gradient evaluations)."""
     chol = torch.linalg.cholesky((hessian + hessian.T) / 2)
     before = math.inf if target is None else _whitened(z - target, hessian)
     for n in range(1, CHORD_STEPS + 1):
@@ -268,11 +271,11 @@ def _chord(space, z, hessian, target=None):
             return False, z, n
         step = torch.cholesky_solve(g[:, None], chol)[:, 0]
         after = _whitened(z - step - target, hessian) if target is not None else _whitened(step, hessian)
+        if after <= (SAME_MODE if target is not None else ROUNDING):
+            return True, z - step, n
         if not after < before:
             return False, z, n
         z, before = z - step, after
-        if after <= (SAME_MODE if target is not None else ROUNDING):
-            return True, z, n
     return False, z, CHORD_STEPS
 
 
