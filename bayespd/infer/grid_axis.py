@@ -2,9 +2,10 @@
 linearly between neighbouring points (in log site for a scale) and integrated exactly.
 
 Exact for a density exponential in the variable between points, so a cusp (a kink of the log
-density, as the PD horizon's partial-volume weights make: ``bayespd.bonds.partial_volume``) costs
-nothing when it is a grid point, where the midpoint rule errs by O(step / width) at a cusp of width
-``width``; for a smooth log density L each cell errs by O(step^3 L''), as the trapezoid rule on L.
+density, as the bond weights make in the PD horizon: ``bayespd.bonds.Bonds.kinks``) costs nothing
+when it is a grid point, where the midpoint rule errs by O(step / width) at a cusp of width
+``width``; for a smooth log density L each cell errs by O(step^3 L''), as the trapezoid rule on L
+(O(step^2) in all).
 Each point owns the halves of its two cells (the ends one half: the integral runs from the first
 point to the last, so their weights should be negligible).
 """
