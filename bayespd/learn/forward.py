@@ -6,7 +6,7 @@ the learned LPS surrogate with the smoothed damage law integrated in time on the
 f the project's exact-kinematics LPS force (``bayespd.nonlinear``, ``materials/lps.py``: a bond
 of intact fraction gamma keeps gamma w of its weight and the weighted volume m is recomputed from
 the intact bonds), gamma_b = (1 - tanh((max_t s_b - s0) / eta)) / 2 (eq 3.10, irreversible,
-``bayespd.damage.SmoothStep``). Velocity Verlet: drift, prescribed nodes set to their displacement
+``bayespd.damage.SmoothStep``), eta a fixed share of s0 (the paper tunes it by hand: ``eta_over_s0``). Velocity Verlet: drift, prescribed nodes set to their displacement
 at the new time, damage update with the new stretch, force, kick. The prescribed nodes follow
 ``moving(t)`` (e.g. the coarse-grained MD displacement of the pulled edge columns, linear in time
 between frames); the free nodes start from ``v0``. The step is ``safety`` times the Verlet limit
@@ -34,7 +34,7 @@ from bayespd.solvers.dynamics import NumericalInstabilityError, stable_time_step
 from bayespd.validate import positive
 
 MASS = 1.0 / 9648.533212  # eV ps^2 / A^2 per g/mol (1 g/mol = 1.0364e-4 eV ps^2 / A^2)
-ETA_OVER_S0 = 0.25  # eq 3.10's width eta = s0 / 4: gamma(0) = 0.9997 at any s0 (a fixed eta = 0.05
+ETA_OVER_S0 = 0.25  # eq 3.10's default width eta = s0 / 4: gamma(0) = 0.9997 at any s0 (a fixed eta = 0.05
 #                     weakens every bond at the small s0 a search visits: gamma(0) = 0.69 at s0 = 0.01)
 
 
@@ -69,7 +69,7 @@ def linear_in_time(times, values) -> Callable[[float], np.ndarray]:
 
 
 def forward_run(material, params: dict, rho, frames, s0: float | None = None, prescribed=None, moving=None,
-                v0=None, body=None, safety: float = 0.5, surface=False) -> ForwardRun:
+                v0=None, body=None, safety: float = 0.5, surface=False, eta_over_s0: float = ETA_OVER_S0) -> ForwardRun:
     """Integrate the module docstring's equation over [0, frames[-1]] and save u, phi at ``frames``
     (times in ps, frames[0] = 0). ``rho`` (N,) density; ``s0``: the critical stretch (None: no
     damage); ``prescribed`` (N,) bool with ``moving(t)`` -> (N, 2) displacements (only the
@@ -86,7 +86,8 @@ def forward_run(material, params: dict, rho, frames, s0: float | None = None, pr
     fixed = np.zeros(n, bool) if prescribed is None else np.asarray(prescribed, bool)
     if fixed.any() and moving is None:
         raise ValueError("prescribed nodes need moving(t): pass their displacement history")
-    law = None if s0 is None else SmoothStep(positive("s0", s0, "pass the critical stretch"), ETA_OVER_S0 * s0)
+    law = None if s0 is None else SmoothStep(positive("s0", s0, "pass the critical stretch"),
+                                             positive("eta_over_s0", eta_over_s0, "pass eq 3.10's width over s0") * s0)
     start = time.perf_counter()
     volume = np.asarray(material.particles.volume, float)
     mass = MASS * rho * volume

@@ -28,9 +28,10 @@ from bayespd.damage import DamageIndex
 from bayespd.discretize import from_points
 from bayespd.infer.calibration import interval_score
 from bayespd.influence import Bernstein
+from bayespd.learn.crack_length import fitted_errors, forecast, length_resolution, log_evidence
 from bayespd.learn.damage_error import cone_average, lagged, shifted, straight_crack_intact
 from bayespd.learn.discrepancy import count_damage, relative_error, relative_mse
-from bayespd.learn.forward import forward_run, linear_in_time
+from bayespd.learn.forward import ETA_OVER_S0, forward_run, linear_in_time
 from bayespd.learn.kernel import lps_params
 from bayespd.learn.model_error import fit_relative_error
 from bayespd.learn.md_damage import broken_atom_bonds, cut_coarse_bonds, slit_centre, tip_height
@@ -57,11 +58,11 @@ class Scene:
     body: object
     surface: object = False  # forward_run's: False, True or free(sites) -> bool
 
-    def run(self, s0, frames=None):
-        """A forward run over the first ``frames`` frames (all: None)."""
+    def run(self, s0, frames=None, eta_over_s0=ETA_OVER_S0):
+        """A forward run over the first ``frames`` frames (all: None), eq 3.10's width eta_over_s0 s0."""
         t = self.time if frames is None else self.time[:frames]
         return forward_run(self.material, self.params, self.rho, t, s0, self.fixed, self.moving, self.v0, self.body,
-                           surface=self.surface)
+                           surface=self.surface, eta_over_s0=eta_over_s0)
 
 
 def scene(coarse, record, kernel: dict, h: float, pulled: bool, surface: bool = False) -> Scene:
@@ -178,60 +179,111 @@ def evaluate(sc: Scene, s0, frames=slice(None)) -> dict:
 
 NOISE_MODELS = ("iid", "per_frame", "relative_iid", "relative_per_frame", "relative_growing", "relative_correlated")
 GROWTH = np.linspace(0.0, 3.0, 61)  # "relative_growing"'s exponents gamma: sd r s_t (t / t_fit)^gamma
+WIDTHS = np.geomspace(0.05, 0.8, 5)  # eq 3.10's eta / s0 on the grid: near the sharp law to a wide softening
 ALPHA = 0.1  # the bands' level: central 90 % intervals
 
 
-def s0_posterior(sc: Scene, half: int, bounds, draws: int = 200, seed: int = 0) -> dict:
-    """Grid posteriors of log s0 from the training frames under six noise models, 90 % predictive
-    bands for frames half .. end, and the model chosen by leave-future-out on the training frames.
+def damage_posterior(sc: Scene, half: int, bounds, draws: int = 200, seed: int = 0, widths=WIDTHS) -> dict:
+    """Grid posteriors of eq 3.10's (log s0, log eta / s0) from the training frames' displacements,
+    under six noise models, and their crack lengths; 90 % predictive bands for frames half .. end
+    and of the crack-length history; the noise model chosen by leave-future-out on the training frames.
 
-    Likelihood: u_md = u_pd(s0) + e on the free nodes of the fitted frames, e Gaussian with sigma
-    marginalised under p(sigma) ~ 1/sigma: p(s0 | data) ~ SSE(s0)^(-n/2); prior uniform in log s0.
+    Likelihood: the displacements and the crack lengths, independent given (s0, eta). Displacements:
+    u_md = u_pd + e on the free nodes of the fitted frames, e Gaussian with sigma marginalised under
+    p(sigma) ~ 1/sigma: p(data | s0, eta) ~ SSE^(-n/2); prior uniform in log s0 and log eta / s0.
     Two readings of n: every nodal value independent ("iid", n = 2 x nodes x frames: ignores the
     correlation of model error over space, so too narrow) and one independent value per frame
     ("per_frame", n = frames: the error field of a frame moves as one). "relative_*": the same with
-    e's sd r s_t relative to the frame's rms PD displacement s_t(s0) (the error grows with the field):
-    p(s0 | data) ~ SSE_rel^(-n/2) prod_t s_t^(-n / frames), SSE_rel = sum_t |e_t|^2 / s_t^2.
+    e's sd r s_t relative to the frame's rms PD displacement s_t (the error grows with the field):
+    p ~ SSE_rel^(-n/2) prod_t s_t^(-n / frames), SSE_rel = sum_t |e_t|^2 / s_t^2.
     "relative_growing": relative iid with s_t times (t / t_fit)^gamma, t_fit the last fitted frame's
     time, gamma on ``GROWTH`` (uniform prior; gamma = 0 is "relative_iid"): the relative error itself
     grows over the training frames (5 % of the field at the first, 20-25 % later: model_error's
     docstring), which a constant r carries into the extrapolation at its training average.
-    "relative_correlated": ``bayespd.learn.model_error``'s term (``_relative_correlated``). Grid:
-    61 points evenly in log over the prior's ``bounds``, one full-record run each. Predictive:
-    ``draws`` s0 from the grid weights, each run plus its noise per value (sd sigma(s0), or
-    r(s0) s_t of the predicted frame).
+    "relative_correlated": ``bayespd.learn.model_error``'s term (``_relative_correlated``). Crack
+    lengths: MD's minus the run's from the frame before MD's first break, iid with their scale
+    marginalised above the half-step resolution (``bayespd.learn.crack_length``): eta sets how
+    fast a PD crack runs (at s0 = 0.163, eta / s0 0.05 to 1: 57 to 23 A/ps), which the displacements
+    barely see. Grid: 61 s0 evenly in log over the prior's ``bounds`` times ``widths``, one
+    full-record run each; the fits to all training frames then on a grid zoomed to where any
+    model's mass lies (``_zoom``: 61 s0 between the coarse points holding >= 1e-6 of it, a coarse
+    step wider; the mass left out reported), since they are narrower than the coarse step. Predictive: ``draws`` (s0, eta) from the grid weights, each run plus its
+    noise per value (sd sigma, or r s_t of the predicted frame), and its crack lengths plus a
+    draw of their error.
 
     Choice (``chosen``): each model fitted to frames 1 .. half / 2 - 1 predicts frames half / 2 ..
     half - 1 (the training frames only; they hold the crack's initiation), scored by the mean
-    interval score of its 90 % bands over those values (Gneiting & Raftery 2007 eq 43: width plus
-    2 / alpha times the miss, a proper score of the interval); the lowest is the model the bands
-    are reported with (Buerkner, Gabry & Vehtari 2020's leave-future-out, one split)."""
-    grid = np.exp(np.linspace(np.log(bounds[0]), np.log(bounds[1]), 61))
-    runs = [sc.run(s) for s in grid]
-    md_len = np.asarray(crack_history(sc.time, sc.tip)["length_A"])
+    interval score of its 90 % displacement bands over those values (Gneiting & Raftery 2007 eq 43:
+    width plus 2 / alpha times the miss, a proper score of the interval); the lowest is the model
+    the bands are reported with (Buerkner, Gabry & Vehtari 2020's leave-future-out, one split)."""
+    s0s = np.exp(np.linspace(np.log(bounds[0]), np.log(bounds[1]), 61))
+    widths = np.asarray(widths, float)
+    runs, crack = _grid_runs(sc, s0s, widths)
     cut = half // 2
-    held = {name: _predictive(sc, runs, grid, name, cut, slice(cut, half), draws, seed) for name in NOISE_MODELS}
+    held = {name: _predictive(sc, runs, crack, name, cut, slice(cut, half), draws, seed) for name in NOISE_MODELS}
     scores = {name: interval_score(pred, data, 1 - ALPHA) for name, (_, _, pred, data, _) in held.items()}
+    coarse = {name: _predictive(sc, runs, crack, name, half, slice(half, None), 1, seed)[0].reshape(len(s0s), -1).sum(1)
+              for name in NOISE_MODELS}
+    s0s, neglected = _zoom(s0s, coarse)
+    runs, crack = _grid_runs(sc, s0s, widths)
     out = {}
     for name in NOISE_MODELS:
-        w, pick, pred, data, fitted = _predictive(sc, runs, grid, name, half, slice(half, None), draws, seed)
+        w, pick, pred, data, fitted = _predictive(sc, runs, crack, name, half, slice(half, None), draws, seed)
         lo, hi = np.quantile(held[name][2], [ALPHA / 2, 1 - ALPHA / 2], axis=0)
         out[name] = {**fitted, "leave_future_out_interval_score_A": scores[name],
                      "leave_future_out_band90_node_frame_coverage": float(_inside(held[name][3], lo, hi).mean()),
-                     **_bands(sc, runs, grid, w, pick, pred, data, md_len)}
+                     **_marginals(w.reshape(len(s0s), len(widths)), s0s, widths),
+                     **_bands(pick, pred, data, crack, half, np.random.default_rng(seed + 1))}
     free = ~sc.fixed
     sse = np.array([((r.u[1:half, free] - sc.u[1:half, free]) ** 2).sum() for r in runs])
-    return {"grid": grid.tolist(), "training_sse_A2": sse.tolist(), "leave_future_out_frames": [cut, half],
-            "chosen": min(scores, key=scores.get), **out}
+    return {"s0_grid": s0s.tolist(), "eta_over_s0_grid": widths.tolist(), "coarse_mass_left_out": neglected,
+            "training_sse_A2": sse.tolist(), "crack_length_log_evidence": [crack.log_evidence(k, half) for k in range(len(runs))],
+            "leave_future_out_frames": [cut, half], "chosen": min(scores, key=scores.get), **out}
 
 
-def _predictive(sc: Scene, runs, grid, name: str, end: int, late: slice, draws: int, seed: int):
+def _grid_runs(sc: Scene, s0s, widths):
+    """A full-record run at every (s0, eta / s0) of the grid (s0 major), and their crack lengths."""
+    runs = [sc.run(s, eta_over_s0=r) for s in s0s for r in widths]
+    md = np.asarray(crack_history(sc.time, sc.tip)["length_A"])
+    lengths = np.array([crack_history(sc.time, pd_tip(sc, r))["length_A"] for r in runs])
+    return runs, _CrackLengths(md, lengths, int(np.flatnonzero(md > 0)[0]), length_resolution(sc.material.bonds.h))
+
+
+def _zoom(s0s, weights: dict, floor: float = 1e-6):
+    """61 s0 evenly in log over the coarse points with weight >= ``floor`` in any model's marginal
+    (``weights``: name -> (s0s,)), one coarse step wider each side; and the largest mass left out."""
+    kept = np.flatnonzero(np.max(list(weights.values()), axis=0) >= floor)
+    a, b = max(kept[0] - 1, 0), min(kept[-1] + 1, len(s0s) - 1)
+    left_out = max(float(w[:a].sum() + w[b + 1:].sum()) for w in weights.values())
+    return np.exp(np.linspace(np.log(s0s[a]), np.log(s0s[b]), len(s0s))), left_out
+
+
+@dataclass
+class _CrackLengths:
+    """MD's crack lengths (F,), the grid runs' (runs, F), MD's first cracked frame and the
+    resolution q (``bayespd.learn.crack_length``)."""
+    md: np.ndarray
+    runs: np.ndarray
+    first: int
+    q: float
+
+    def log_evidence(self, k: int, end: int) -> float:
+        """Of run k's lengths given frames to end - 1."""
+        return log_evidence(fitted_errors(self.md, self.runs[k], self.first, end), self.q)
+
+    def forecast(self, rng, k: int, end: int) -> np.ndarray:
+        """A draw of MD's lengths from frame ``end`` on given run k and the frames before."""
+        return forecast(rng, self.md, self.runs[k], self.first, end, self.q)
+
+
+def _predictive(sc: Scene, runs, crack: _CrackLengths, name: str, end: int, late: slice, draws: int, seed: int):
     """(grid weights, the draws' grid points, predictive draws (draws, frames, free nodes, 2), the
     MD data there, the fit's numbers) of noise model ``name`` fitted to frames 1 .. end - 1 and
-    predicting frames ``late`` (``s0_posterior``'s docstring)."""
+    predicting frames ``late`` (``damage_posterior``'s docstring)."""
     free = ~sc.fixed
+    crack_logp = np.array([crack.log_evidence(k, end) for k in range(len(runs))])
     if name == "relative_correlated":
-        return _relative_correlated(sc, runs, grid, end, late, draws, seed)
+        return _relative_correlated(sc, runs, crack_logp, end, late, draws, seed)
     relative, per_frame = name.startswith("relative"), name.endswith("per_frame")
     growth = GROWTH if name == "relative_growing" else np.zeros(1)
     residuals = [r.u[1:end, free] - sc.u[1:end, free] for r in runs]
@@ -244,7 +296,7 @@ def _predictive(sc: Scene, runs, grid, name: str, end: int, late: slice, draws: 
     else:
         s = np.ones((len(runs), 1, end - 1))
     sse = np.array([[((e / sg[:, None, None]) ** 2).sum() for sg in sk] for e, sk in zip(residuals, s)])
-    logp = -0.5 * n * np.log(sse / sse.min()) - n / (end - 1) * np.log(s).sum(-1)  # (grid, growth)
+    logp = -0.5 * n * np.log(sse / sse.min()) - n / (end - 1) * np.log(s).sum(-1) + crack_logp[:, None]  # (grid, growth)
     joint = np.exp(logp - logp.max()).ravel()
     joint /= joint.sum()
     rng = np.random.default_rng(seed)
@@ -264,10 +316,11 @@ def _predictive(sc: Scene, runs, grid, name: str, end: int, late: slice, draws: 
     return joint.reshape(len(runs), -1).sum(1), pick, np.stack(pred), data, fitted
 
 
-def _relative_correlated(sc: Scene, runs, grid, end: int, late: slice, draws: int, seed: int):
+def _relative_correlated(sc: Scene, runs, crack_logp, end: int, late: slice, draws: int, seed: int):
     """``_predictive`` for ``bayespd.learn.model_error``'s term: error relative to each frame's rms
     PD displacement s_t, exponentially correlated in space and time, (ell, tau) by evidence at the
-    best-fitting s0 on grids (h/2 .. 64 h, half a frame .. 32 frames), r marginalised."""
+    best-fitting grid point on grids (h/2 .. 64 h, half a frame .. 32 frames), r marginalised;
+    ``crack_logp`` the crack-length log evidences."""
     free = ~sc.fixed
     train = slice(1, end)
     x, t = sc.material.particles.x[free], sc.time[train]
@@ -277,12 +330,12 @@ def _relative_correlated(sc: Scene, runs, grid, end: int, late: slice, draws: in
     h, step = sc.material.bonds.h, float(np.diff(sc.time).mean())
     term, table = fit_relative_error(residuals[best], scales[best], x, t, h * 2.0 ** np.arange(-1, 7),
                                      step * 2.0 ** np.arange(-1, 6))
-    logp = np.array([term.log_evidence(e, s) for e, s in zip(residuals, scales)])
+    logp = np.array([term.log_evidence(e, s) for e, s in zip(residuals, scales)]) + crack_logp
     w = np.exp(logp - logp.max())
     w /= w.sum()
     values = residuals[0].size
     rng = np.random.default_rng(seed)
-    pick = rng.choice(len(grid), size=draws, p=w)
+    pick = rng.choice(len(runs), size=draws, p=w)
     pred = []
     for k in pick:
         u = runs[k].u[late][:, free]
@@ -298,15 +351,23 @@ def _inside(data, lo, hi) -> np.ndarray:
     return ((data >= lo) & (data <= hi)).all(-1)
 
 
-def _bands(sc: Scene, runs, grid, w, pick, pred, data, md_len) -> dict:
-    """The s0 quantiles of the grid weights ``w``, and the 90 % bands of the predictions ``pred``
-    (draws at the grid points ``pick``) and of their crack lengths, with the share of the MD data inside."""
+def _marginals(w, s0s, widths) -> dict:
+    """s0's quantiles and eta / s0's weights from the grid weights ``w`` (s0s, widths)."""
+    cdf = np.cumsum(w.sum(1))
+    return {"s0_q05": float(s0s[np.searchsorted(cdf, 0.05)]), "s0_median": float(s0s[np.searchsorted(cdf, 0.5)]),
+            "s0_q95": float(s0s[np.searchsorted(cdf, 0.95)]), "eta_over_s0_weights": w.sum(0).tolist(),
+            "weight_at_s0_grid_ends": float(w[0].sum() + w[-1].sum())}
+
+
+def _bands(pick, pred, data, crack: _CrackLengths, half: int, rng) -> dict:
+    """The 90 % bands of the predictions ``pred`` (draws at the grid points ``pick``) and of the crack
+    lengths of frames ``half`` on (the runs' at ``pick`` plus their error fitted on frames to
+    half - 1, ``bayespd.learn.crack_length``; and the runs' alone), with the share of the MD data inside."""
     lo, hi = np.quantile(pred, [ALPHA / 2, 1 - ALPHA / 2], axis=0)
-    lengths = np.stack([crack_history(sc.time, pd_tip(sc, runs[k]))["length_A"] for k in pick])
-    c_lo, c_hi = np.quantile(lengths, [ALPHA / 2, 1 - ALPHA / 2], axis=0)
-    cdf = np.cumsum(w)
-    return {"s0_q05": float(grid[np.searchsorted(cdf, 0.05)]), "s0_median": float(grid[np.searchsorted(cdf, 0.5)]),
-            "s0_q95": float(grid[np.searchsorted(cdf, 0.95)]), "weight_at_grid_ends": float(w[0] + w[-1]),
-            "extrapolation_band90_node_frame_coverage": float(_inside(data, lo, hi).mean()),
-            "crack_length_band90_A": {"q05": c_lo.tolist(), "q95": c_hi.tolist()},
-            "crack_length_md_inside_band_share_of_frames": float(((md_len >= c_lo) & (md_len <= c_hi)).mean())}
+    lengths = np.stack([crack.forecast(rng, k, half) for k in pick])
+    out = {"extrapolation_band90_node_frame_coverage": float(_inside(data, lo, hi).mean())}
+    for name, drawn in (("crack_length", lengths), ("crack_length_runs_only", crack.runs[pick, half:])):
+        c_lo, c_hi = np.quantile(drawn, [ALPHA / 2, 1 - ALPHA / 2], axis=0)
+        out |= {f"{name}_band90_A": {"q05": c_lo.tolist(), "q95": c_hi.tolist()},
+                f"{name}_md_inside_band_share_of_forecast_frames": float(((crack.md[half:] >= c_lo) & (crack.md[half:] <= c_hi)).mean())}
+    return out

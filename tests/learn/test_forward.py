@@ -85,6 +85,21 @@ def test_longitudinal_front_travels_at_the_p_wave_speed():
     assert abs(100.0 / (times[1] - times[0]) / c - 1) < 0.05
 
 
+@pytest.mark.parametrize("eta_over_s0", [0.05, 0.8])
+def test_each_bond_follows_eq_3_10_with_the_width_passed(eta_over_s0):
+    """Every node prescribed on u = t A x: a bond's intact fraction at the end is eq 3.10 of its
+    largest stretch, |(I + t A) xi| / |xi| - 1 at the last time or 0 (the start) for a shortened
+    bond, with eta = eta_over_s0 s0 (to rounding); stretches up to 1.6 s0 reach both tails of the tanh."""
+    x, material = grid(8, 8)
+    A, s0 = np.array([[0.03, 0.01], [0.0, -0.01]]), 0.02
+    run = forward_run(material, PARAMS, RHO, [0.0, 0.5, 1.0], s0, prescribed=np.ones(len(x), bool),
+                      moving=lambda t: t * x @ A.T, eta_over_s0=eta_over_s0)
+    xi = x[material.j] - x[material.i]
+    stretch = np.linalg.norm(xi @ (np.eye(2) + A).T, axis=1) / np.linalg.norm(xi, axis=1) - 1
+    assert stretch.max() > 1.5 * s0
+    np.testing.assert_allclose(run.intact[-1], 0.5 * (1 - np.tanh((np.maximum(stretch, 0) - s0) / (eta_over_s0 * s0))), atol=1e-12)
+
+
 def test_prescribed_history_is_linear_between_frames():
     at = linear_in_time([0.0, 1.0, 3.0], np.array([[0.0], [2.0], [0.0]]))
     np.testing.assert_allclose([at(0.5)[0], at(2.0)[0], at(5.0)[0]], [1.0, 1.0, 0.0])
@@ -100,3 +115,5 @@ def test_bad_input_is_refused_with_the_fix():
         forward_run(material, PARAMS, -1.0, [0.0, 0.1])
     with pytest.raises(ValueError, match="start at t = 0"):
         forward_run(material, PARAMS, RHO, [0.1, 0.2])
+    with pytest.raises(ValueError, match="eta_over_s0"):
+        forward_run(material, PARAMS, RHO, [0.0, 0.1], 0.1, eta_over_s0=0.0)
