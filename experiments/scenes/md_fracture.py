@@ -205,11 +205,11 @@ def damage_posterior(sc: Scene, half: int, bounds, draws: int = 200, seed: int =
     marginalised above the half-step resolution (``bayespd.learn.crack_length``): eta sets how
     fast a PD crack runs (at s0 = 0.163, eta / s0 0.05 to 1: 57 to 23 A/ps), which the displacements
     barely see. Grid: 61 s0 evenly in log over the prior's ``bounds`` times ``widths``, one
-    full-record run each; the fits to all training frames then on a grid zoomed to where any
-    model's mass lies (``_zoom``: 61 s0 between the coarse points holding >= 1e-6 of it, a coarse
-    step wider; the mass left out reported), since they are narrower than the coarse step. Predictive: ``draws`` (s0, eta) from the grid weights, each run plus its
-    noise per value (sd sigma, or r s_t of the predicted frame), and its crack lengths plus a
-    draw of their error.
+    full-record run each; the fits to all training frames, narrower than the coarse step, then on
+    a grid zoomed to where the models' mass lies (``_zoom``: 61 s0 over the coarse range holding
+    all but 1e-3 of each, a coarse step wider; the mass left out reported). Predictive: ``draws``
+    (s0, eta) from the grid weights, each run plus its noise per value (sd sigma, or r s_t of the
+    predicted frame), and its crack lengths plus a draw of their error.
 
     Choice (``chosen``): each model fitted to frames 1 .. half / 2 - 1 predicts frames half / 2 ..
     half - 1 (the training frames only; they hold the crack's initiation), scored by the mean
@@ -249,13 +249,15 @@ def _grid_runs(sc: Scene, s0s, widths):
     return runs, _CrackLengths(md, lengths, int(np.flatnonzero(md > 0)[0]), length_resolution(sc.material.bonds.h))
 
 
-def _zoom(s0s, weights: dict, floor: float = 1e-6):
-    """61 s0 evenly in log over the coarse points with weight >= ``floor`` in any model's marginal
-    (``weights``: name -> (s0s,)), one coarse step wider each side; and the largest mass left out."""
-    kept = np.flatnonzero(np.max(list(weights.values()), axis=0) >= floor)
-    a, b = max(kept[0] - 1, 0), min(kept[-1] + 1, len(s0s) - 1)
-    left_out = max(float(w[:a].sum() + w[b + 1:].sum()) for w in weights.values())
-    return np.exp(np.linspace(np.log(s0s[a]), np.log(s0s[b]), len(s0s))), left_out
+def _zoom(s0s, weights: dict, left_out: float = 1e-3):
+    """61 s0 evenly in log over the smallest coarse range that holds all but ``left_out`` of every
+    model's marginal (``weights``: name -> (s0s,); half of it each side), a coarse step wider each
+    side; and the largest mass left out."""
+    cdfs = [np.cumsum(w) for w in weights.values()]
+    a = max(min(int(np.searchsorted(c, left_out / 2)) for c in cdfs) - 1, 0)
+    b = min(max(int(np.searchsorted(c, 1 - left_out / 2)) for c in cdfs) + 1, len(s0s) - 1)
+    lost = max(float(w[:a].sum() + w[b + 1:].sum()) for w in weights.values())
+    return np.exp(np.linspace(np.log(s0s[a]), np.log(s0s[b]), len(s0s))), lost
 
 
 @dataclass
