@@ -222,8 +222,8 @@ def damage_posterior(sc: Scene, half: int, bounds, draws: int = 200, seed: int =
     cut = half // 2
     held = {name: _predictive(sc, runs, crack, name, cut, slice(cut, half), draws, seed) for name in NOISE_MODELS}
     scores = {name: interval_score(pred, data, 1 - ALPHA) for name, (_, _, pred, data, _) in held.items()}
-    coarse = {name: _predictive(sc, runs, crack, name, half, slice(half, None), 1, seed)[0].reshape(len(s0s), -1).sum(1)
-              for name in NOISE_MODELS}
+    coarse = {name: _predictive(sc, runs, crack, name, half, slice(half, None), 1, seed)[0]  # the weights only
+              .reshape(len(s0s), -1).sum(1) for name in NOISE_MODELS}
     s0s, neglected = _zoom(s0s, coarse)
     runs, crack = _grid_runs(sc, s0s, widths)
     out = {}
@@ -237,7 +237,8 @@ def damage_posterior(sc: Scene, half: int, bounds, draws: int = 200, seed: int =
     free = ~sc.fixed
     sse = np.array([((r.u[1:half, free] - sc.u[1:half, free]) ** 2).sum() for r in runs])
     return {"s0_grid": s0s.tolist(), "eta_over_s0_grid": widths.tolist(), "coarse_mass_left_out": neglected,
-            "training_sse_A2": sse.tolist(), "crack_length_log_evidence": [crack.log_evidence(k, half) for k in range(len(runs))],
+            "training_sse_A2": sse.tolist(),
+            "crack_length_log_evidence": [crack.log_evidence(k, half) for k in range(len(runs))],
             "leave_future_out_frames": [cut, half], "chosen": min(scores, key=scores.get), **out}
 
 
@@ -370,6 +371,7 @@ def _bands(pick, pred, data, crack: _CrackLengths, half: int, rng) -> dict:
     out = {"extrapolation_band90_node_frame_coverage": float(_inside(data, lo, hi).mean())}
     for name, drawn in (("crack_length", lengths), ("crack_length_runs_only", crack.runs[pick, half:])):
         c_lo, c_hi = np.quantile(drawn, [ALPHA / 2, 1 - ALPHA / 2], axis=0)
+        inside = (crack.md[half:] >= c_lo) & (crack.md[half:] <= c_hi)
         out |= {f"{name}_band90_A": {"q05": c_lo.tolist(), "q95": c_hi.tolist()},
-                f"{name}_md_inside_band_share_of_forecast_frames": float(((crack.md[half:] >= c_lo) & (crack.md[half:] <= c_hi)).mean())}
+                f"{name}_md_inside_band_share_of_forecast_frames": float(inside.mean())}
     return out
