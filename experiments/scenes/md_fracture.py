@@ -247,7 +247,7 @@ def _grid_runs(sc: Scene, s0s, widths):
     runs = [sc.run(s, eta_over_s0=r) for s in s0s for r in widths]
     md = np.asarray(crack_history(sc.time, sc.tip)["length_A"])
     lengths = np.array([crack_history(sc.time, pd_tip(sc, r))["length_A"] for r in runs])
-    return runs, _CrackLengths(md, lengths, int(np.flatnonzero(md > 0)[0]), length_resolution(sc.material.bonds.h))
+    return runs, _CrackLengths(sc.time, md, lengths, int(np.flatnonzero(md > 0)[0]), length_resolution(sc.material.bonds.h))
 
 
 def _zoom(s0s, weights: dict, left_out: float = 1e-3):
@@ -263,8 +263,9 @@ def _zoom(s0s, weights: dict, left_out: float = 1e-3):
 
 @dataclass
 class _CrackLengths:
-    """MD's crack lengths (F,), the grid runs' (runs, F), MD's first cracked frame and the
-    resolution q (``bayespd.learn.crack_length``)."""
+    """The frame times (F,), MD's crack lengths (F,), the grid runs' (runs, F), MD's first cracked
+    frame and the resolution q (``bayespd.learn.crack_length``)."""
+    time: np.ndarray
     md: np.ndarray
     runs: np.ndarray
     first: int
@@ -273,6 +274,10 @@ class _CrackLengths:
     def log_evidence(self, k: int, end: int) -> float:
         """Of run k's lengths given frames to end - 1."""
         return log_evidence(fitted_errors(self.md, self.runs[k], self.first, end), self.q)
+
+    def history(self, lengths) -> dict:
+        """``crack_history`` of a length history (F,)."""
+        return crack_history(self.time, np.where(lengths > 0, SLIT_TIP + lengths, np.nan))
 
     def forecast(self, rng, k: int, end: int) -> np.ndarray:
         """A draw of MD's lengths from frame ``end`` on given run k and the frames before."""
@@ -365,7 +370,9 @@ def _marginals(w, s0s, widths) -> dict:
 def _bands(pick, pred, data, crack: _CrackLengths, half: int, rng) -> dict:
     """The 90 % bands of the predictions ``pred`` (draws at the grid points ``pick``) and of the crack
     lengths of frames ``half`` on (the runs' at ``pick`` plus their error fitted on frames to
-    half - 1, ``bayespd.learn.crack_length``; and the runs' alone), with the share of the MD data inside."""
+    half - 1, ``bayespd.learn.crack_length``; and the runs' alone), with the share of the MD data
+    inside; the drawn runs' initiation time and running speed (90 % intervals, MD's inside?) and the
+    share of them that arrest (``crack_history``)."""
     lo, hi = np.quantile(pred, [ALPHA / 2, 1 - ALPHA / 2], axis=0)
     lengths = np.stack([crack.forecast(rng, k, half) for k in pick])
     out = {"extrapolation_band90_node_frame_coverage": float(_inside(data, lo, hi).mean())}
@@ -374,4 +381,12 @@ def _bands(pick, pred, data, crack: _CrackLengths, half: int, rng) -> dict:
         inside = (crack.md[half:] >= c_lo) & (crack.md[half:] <= c_hi)
         out |= {f"{name}_band90_A": {"q05": c_lo.tolist(), "q95": c_hi.tolist()},
                 f"{name}_md_inside_band_share_of_forecast_frames": float(inside.mean())}
+    histories, md = [crack.history(crack.runs[k]) for k in pick], crack.history(crack.md)
+    for key in ("initiation_ps", "speed_A_per_ps"):
+        values = [h[key] for h in histories if h[key] is not None]
+        q05, q95 = np.quantile(values, [ALPHA / 2, 1 - ALPHA / 2]).tolist() if values else (None, None)
+        out[f"crack_{key}"] = {"q05": q05, "q95": q95, "md": md[key], "runs_without_crack": len(pick) - len(values),
+                               "md_inside": bool(values) and q05 <= md[key] <= q95}
+    out["crack_arrest"] = {"share_of_runs_arrested": float(np.mean([h["arrest_ps"] is not None for h in histories])),
+                           "md_arrest_ps": md["arrest_ps"]}
     return out
