@@ -13,7 +13,7 @@ eq 3.18 (bayespd.learn.free_surface) in place of the exact-kinematics LPS; then 
 second half, the pulse run, the 3.17 A grid, with the crack-length histories; a grid posterior of
 eq 3.10's s0 and width eta from the training frames' displacements and crack lengths, with 90 %
 predictive bands under six noise models, the one reported chosen by leave-future-out
-on the training frames; the same phase 2 (without the s0 posterior) at the paper's horizon
+on the training frames; the same phase 2 (without the damage posterior) at the paper's horizon
 delta = 4 h as a reported variant (``phase2_paper_horizon``). Bayes: the posterior of
 models/md_dispersion.py (nested Laplace: tau and delta by quadrature, delta's grid with every kink of
 the partial-volume and influence weights as a point; the measured compliance per wave, a
