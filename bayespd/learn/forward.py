@@ -8,8 +8,9 @@ of intact fraction gamma keeps gamma w of its weight and the weighted volume m i
 the intact bonds), gamma_b = (1 - tanh((max_t s_b - s0) / eta)) / 2 (eq 3.10, irreversible,
 ``bayespd.damage.SmoothStep``), eta a fixed share of s0 (``eta_over_s0``; the paper tunes it by
 hand). Velocity Verlet: drift, prescribed nodes set to their displacement at the new time,
-damage update with the new stretch, force, kick. The prescribed nodes follow ``moving(t)`` (e.g. the coarse-grained MD displacement of the pulled edge columns, linear in time
-between frames); the free nodes start from ``v0``. The step is ``safety`` times the Verlet limit
+damage update with the new stretch, force, kick. The prescribed nodes follow ``moving(t)`` (e.g.
+the coarse-grained MD displacement of the pulled edge columns, linear in time between frames);
+the free nodes start from ``v0``. The step is ``safety`` times the Verlet limit
 2 / sqrt(lambda_max(M^-1 K)) of the intact linearised operator (damage only softens it).
 ``surface``: f_i = -V_i L_i with L the free-surface-corrected LPS of paper 004 eq 3.18
 (``bayespd.learn.free_surface``: linear in u for given gamma, missing bonds as broken ones) in
