@@ -49,10 +49,12 @@ SECOND_BUMP = 11.5  # A: delta's second bump lies above it (md_learning: 10 % of
 TARGET_ACCEPT = 0.95
 
 
-def quantities(posterior) -> dict:
-    """lambda + 2 mu and mu per (chain, draw) from a fit's posterior group."""
-    lam_plus_mu, mu = posterior["lam_plus_mu"].values, posterior["mu"].values
-    return {"lambda_plus_2mu": lam_plus_mu + mu, "mu": mu}
+def quantities(draws: dict) -> dict:
+    """lambda + 2 mu, mu, and delta and tau where drawn, from draws of the model's sites (arrays of
+    any shape, e.g. (chain, draw))."""
+    values = {k: np.asarray(v) for k, v in draws.items()}
+    return {"lambda_plus_2mu": values["lam_plus_mu"] + values["mu"], "mu": values["mu"],
+            **{k: values[k] for k in ("delta", "tau") if k in values}}
 
 
 def summary(values: np.ndarray) -> dict:
@@ -83,7 +85,7 @@ def compare(model, observed, init, point, quick, seed) -> tuple[dict, dict]:
     nuts = fit(conditioned, observed, "nuts", num_samples=samples, num_warmup=warmup, num_chains=2, chains="sequential",
                dense_mass=True, mass_matrix_from="laplace", target_accept=TARGET_ACCEPT, seed=seed, progress=False,
                predictive=False, observed="C", init_values=start)
-    by_chain, gauss = quantities(nuts["posterior"]), quantities(laplace["posterior"])
+    by_chain, gauss = (quantities({k: v.values for k, v in fitted["posterior"].items()}) for fitted in (nuts, laplace))
     divergences = int(nuts["sample_stats"]["diverging"].values.sum())
     out, targets = {"point": point, "divergences": divergences,
                     "nuts": {"wall_time_s": float(nuts.attrs["wall_time_s"]), "num_grad_evals": int(nuts.attrs["num_grad_evals"]),
