@@ -8,7 +8,7 @@ error is measured by experiments/md_quadrature_check.py; what is left is the Lap
 delta), exact for a Gaussian conditional and otherwise carrying its error. This experiment
 measures it with the sampler that makes none, at the grid points that carry the posterior: NUTS
 (``bayespd.infer.fit``, two chains of 300 + 500, the dense mass matrix seeded by the Laplace) on
-the model conditioned on (tau, delta), against ``fit(..., "laplace")`` there (4,000 draws).
+the model conditioned on (tau, delta), against ``fit(..., "laplace")`` there (``LAPLACE_DRAWS``).
 
 Why conditioned: the potential is only piecewise smooth in delta, and md_learning's posterior
 peaks on a kink (delta = 11.022 A, a bond length). NUTS over delta as well (stop 44, and stop 45's
@@ -47,6 +47,7 @@ QUANTITIES = ("lambda_plus_2mu", "mu")
 MEAN_SDS, SD_RATIO, RHAT, ESS = 0.2, 0.2, 1.01, 400
 SECOND_BUMP = 11.5  # A: delta's second bump lies above it (md_learning: 10 % of the mass at 11.6-12.3 A)
 TARGET_ACCEPT = 0.95
+LAPLACE_DRAWS = 4000
 
 
 def quantities(draws: dict) -> dict:
@@ -79,7 +80,7 @@ def compare(model, observed, init, point, quick, seed) -> tuple[dict, dict]:
     """NUTS and the Laplace on ``model`` conditioned on ``point``; their summaries and the targets."""
     conditioned = poutine.condition(model, data={k: torch.tensor(v, dtype=torch.float64) for k, v in point.items()})
     start = {k: torch.as_tensor(v) for k, v in init.items() if k not in point}
-    laplace = fit(conditioned, observed, "laplace", num_samples=4000, seed=seed, progress=False, predictive=False,
+    laplace = fit(conditioned, observed, "laplace", num_samples=LAPLACE_DRAWS, seed=seed, progress=False, predictive=False,
                   observed="C", init_values=start)
     samples, warmup = (30, 30) if quick else (500, 300)
     nuts = fit(conditioned, observed, "nuts", num_samples=samples, num_warmup=warmup, num_chains=2, chains="sequential",
@@ -90,7 +91,7 @@ def compare(model, observed, init, point, quick, seed) -> tuple[dict, dict]:
     out, targets = {"point": point, "divergences": divergences,
                     "nuts": {"wall_time_s": float(nuts.attrs["wall_time_s"]), "num_grad_evals": int(nuts.attrs["num_grad_evals"]),
                              "samples_per_chain": samples, "warmup": warmup, "chains": 2},
-                    "laplace": {"wall_time_s": float(laplace.attrs["wall_time_s"]), "draws": 4000}}, {}
+                    "laplace": {"wall_time_s": float(laplace.attrs["wall_time_s"]), "draws": LAPLACE_DRAWS}}, {}
     for k in QUANTITIES:
         rhat, ess = float(az.rhat(by_chain[k])), float(az.ess(by_chain[k], method="bulk"))
         ref, est = summary(by_chain[k]), summary(gauss[k])
