@@ -204,8 +204,9 @@ def damage_posterior(sc: Scene, half: int, bounds, draws: int = 200, seed: int =
     lengths: MD's minus the run's from the frame before MD's first break, iid with their scale
     marginalised above the half-step resolution (``bayespd.learn.crack_length``): eta sets how
     fast a PD crack runs, which the displacements barely see (docs/results.md, issue 28, stop 46).
-    Grid: 61 s0 evenly in log over the prior's ``bounds`` times ``widths``, one full-record run each; the fits to all training frames, narrower than the coarse step, then on
-    a grid zoomed to where the models' mass lies (``_zoom``: 61 s0 over the coarse range holding
+    Grid: 61 s0 evenly in log over the prior's ``bounds`` times ``widths``, one full-record run
+    each; the fits to all training frames, narrower than the coarse step, then on a grid zoomed to
+    where the models' mass lies (``_zoom``: 61 s0 over the coarse range holding
     all but 1e-3 of each, a coarse step wider; the mass left out reported). Predictive: ``draws``
     (s0, eta) from the grid weights, each run plus its noise per value (sd sigma, or r s_t of the
     predicted frame), and its crack lengths plus a draw of their error.
