@@ -35,6 +35,13 @@ class Bonds:
     def n(self) -> int:
         return len(self.i)
 
+    def tiled(self, copies: int, n: int) -> "Bonds":
+        """The bonds of ``copies`` disjoint copies of an ``n``-particle body: copy c's bonds join
+        particles c n + i and c n + j, in copy order."""
+        shift = np.repeat(np.arange(copies) * n, len(self.i))
+        return Bonds(np.tile(self.i, copies) + shift, np.tile(self.j, copies) + shift, np.tile(self.xi, (copies, 1)),
+                     np.tile(self.length, copies), self.h, self.delta_max, self.rule)
+
     def without(self, remove: np.ndarray) -> "Bonds":
         """The bonds where the boolean mask ``remove`` is false."""
         keep = ~np.asarray(remove, dtype=bool)
@@ -109,8 +116,13 @@ def check_horizon(delta, h: float, delta_max: float) -> None:
 
 
 def precrack(particles: Particles, bonds: Bonds, crack) -> Bonds:
-    """Remove the bonds crossing ``crack``: a segment [[x0, y0], [x1, y1]] in 2D, or the
-    vertices (k >= 3, 3) of a planar polygon in 3D. A bond is cut when its ends lie strictly
+    """Remove the bonds crossing ``crack`` (``crossing``)."""
+    return bonds.without(crossing(particles, bonds, crack))
+
+
+def crossing(particles: Particles, bonds: Bonds, crack) -> np.ndarray:
+    """The bonds a pre-crack cuts (bool mask): ``crack`` is a segment [[x0, y0], [x1, y1]] in 2D,
+    or the vertices (k >= 3, 3) of a planar polygon in 3D. A bond is cut when its ends lie strictly
     on opposite sides of the crack line (plane) and it passes through the segment (polygon);
     place cracks between particle rows, since a bond ending on the crack is kept. A crack of
     zero length, or one that cuts no bond (outside the body), is refused."""
@@ -130,7 +142,7 @@ def precrack(particles: Particles, bonds: Bonds, crack) -> Bonds:
         raise ValueError(f"the pre-crack {crack.tolist()} cuts no bond: it lies outside the body "
                          f"[{particles.lower().tolist()}, {particles.upper().tolist()}] or along a "
                          "particle row; place it inside, between particle rows")
-    return bonds.without(cut)
+    return cut
 
 
 def _cross(o, p, q):

@@ -58,10 +58,16 @@ def relative_mse(pred, data, nodes=None) -> float:
     return _frame_ratios(pred, data, nodes, squared=True)
 
 
-def count_damage(n: int, bond_i, bond_j, length, delta: float, intact) -> np.ndarray:
+def count_damage(n: int, bond_i, bond_j, length, delta: float, intact, cut=None) -> np.ndarray:
     """Eq 5.4: phi_i = 1 - sum_j gamma_ij / sum_j 1 over the bonds with |x_j - x_i| <= delta (no
     influence or volume weights; the partial-volume bonds beyond delta left out); ``intact``
-    (..., bonds) gamma. Returns (..., n)."""
+    (..., bonds) gamma. ``cut``: (i, j, length) of bonds lost before the record (a pre-crack's),
+    gamma = 0 in every frame: eq 5.4 as printed sums over every x_j in B_delta(x_i), so a slit's
+    bonds count as broken. Returns (..., n)."""
+    if cut is not None:
+        intact = np.asarray(intact, float)
+        bond_i, bond_j, length = (np.concatenate([a, b]) for a, b in zip((bond_i, bond_j, length), cut))
+        intact = np.concatenate([intact, np.zeros((*intact.shape[:-1], len(cut[0])))], axis=-1)
     inside = np.asarray(length) <= delta
     i, j = np.asarray(bond_i)[inside], np.asarray(bond_j)[inside]
     count = np.bincount(i, minlength=n) + np.bincount(j, minlength=n)

@@ -20,6 +20,7 @@ Units: A, ps, rho in g/mol per A^2 (times ``MASS``), b in eV/A^3.
 """
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass
 from typing import Callable
@@ -28,6 +29,7 @@ import numpy as np
 import scipy.sparse
 import torch
 
+from bayespd import bond_loops
 from bayespd.damage import DamageIndex, SmoothStep
 from bayespd.learn.free_surface import FreeSurface
 from bayespd.nonlinear import NonlinearBonds
@@ -45,12 +47,13 @@ class ForwardRun:
     (``bayespd.damage.DamageIndex`` with the kernel's weights), bond intact fractions ``intact``
     (F, bonds), ``energy`` (F,) kinetic + strain
     energy of the free nodes' motion (eV; conserved when nothing breaks and nothing is
-    prescribed), the step ``dt``, the number of steps and the wall time."""
+    prescribed; None for a run of a batch, ``forward_runs``), the step ``dt``, the number of steps
+    and the wall time (a batch's shared equally)."""
     t: np.ndarray
     u: np.ndarray
     phi: np.ndarray
     intact: np.ndarray
-    energy: np.ndarray
+    energy: np.ndarray | None
     dt: float
     steps: int
     wall_time_s: float
@@ -70,29 +73,29 @@ def linear_in_time(times, values) -> Callable[[float], np.ndarray]:
 
 
 def forward_run(material, params: dict, rho, frames, s0: float | None = None, prescribed=None, moving=None,
-                v0=None, body=None, safety: float = 0.5, surface=False, eta_over_s0: float = ETA_OVER_S0) -> ForwardRun:
+                v0=None, body=None, safety: float = 0.5, surface=False, eta_over_s0=ETA_OVER_S0,
+                dt: float | None = None, track_energy: bool = True) -> ForwardRun:
     """Integrate the module docstring's equation over [0, frames[-1]] and save u, phi at ``frames``
     (times in ps, frames[0] = 0). ``rho`` (N,) density; ``s0``: the critical stretch (None: no
-    damage); ``prescribed`` (N,) bool with ``moving(t)`` -> (N, 2) displacements (only the
-    prescribed rows are read); ``v0`` (N, 2) initial velocity; ``body(t)`` -> (N, 2) force density;
-    ``surface``: False (the exact-kinematics LPS), True (eq 3.18, every missing lattice site beyond
-    a free surface) or ``free(sites) -> bool`` (``FreeSurface``'s: False beyond prescribed edges)."""
+    damage), a number or one per bond as ``eta_over_s0``; ``prescribed`` (N,) bool with ``moving(t)``
+    -> (N, 2) displacements (only the prescribed rows are read); ``v0`` (N, 2) initial velocity;
+    ``body(t)`` -> (N, 2) force density; ``surface``: False (the exact-kinematics LPS), True (eq
+    3.18, every missing lattice site beyond a free surface) or ``free(sites) -> bool``
+    (``FreeSurface``'s: False beyond prescribed edges); ``dt``: the step (None: ``safety`` times
+    the Verlet limit); ``track_energy``: False leaves ``ForwardRun.energy`` None (a force pass a
+    frame less)."""
     frames = np.asarray(frames, float)
     if frames[0] != 0 or np.any(np.diff(frames) <= 0):
         raise ValueError("frames must start at t = 0 and increase")
     n = material.particles.n
-    rho = np.broadcast_to(np.asarray(rho, float), (n,))
-    if np.any(rho <= 0):
-        raise ValueError("the density rho must be positive at every node: coarse-grain with a larger cone radius")
     fixed = np.zeros(n, bool) if prescribed is None else np.asarray(prescribed, bool)
     if fixed.any() and moving is None:
         raise ValueError("prescribed nodes need moving(t): pass their displacement history")
-    law = None if s0 is None else SmoothStep(positive("s0", s0, "pass the critical stretch"),
-                                             positive("eta_over_s0", eta_over_s0, "pass eq 3.10's width over s0") * s0)
+    law = None if s0 is None else _smooth_step(s0, eta_over_s0)
     start = time.perf_counter()
     volume = np.asarray(material.particles.volume, float)
-    mass = MASS * rho * volume
-    dt = _time_step(material, params, mass, safety)
+    mass = _mass(material, rho)
+    dt = _time_step(material, params, mass, safety) if dt is None else positive("the step dt", dt)
     per_frame = np.maximum(np.ceil(np.diff(frames) / dt).astype(int), 1)
     kin = NonlinearBonds(material)
     law_force = kin.at(params) if surface is False else FreeSurface(material, params, None if surface is True else surface)
@@ -113,7 +116,7 @@ def forward_run(material, params: dict, rho, frames, s0: float | None = None, pr
         return f * free
 
     def energy(u, v, intact):
-        return float(0.5 * (m * v * v * free).sum() + law_force.strain_energy(u, intact))
+        return float(0.5 * (m * v * v * free).sum() + law_force.strain_energy(u, intact)) if track_energy else None
 
     f = force(0.0, u, intact)
     ones = np.ones(len(material.i))
@@ -140,8 +143,61 @@ def forward_run(material, params: dict, rho, frames, s0: float | None = None, pr
         saved_phi.append(np.zeros(n) if law is None else index(intact).numpy())
         saved_g.append(ones if law is None else intact.numpy().copy())
         saved_e.append(energy(u, v, intact))
-    return ForwardRun(frames, np.stack(saved_u), np.stack(saved_phi), np.stack(saved_g), np.array(saved_e), float(dt), steps,
-                      time.perf_counter() - start)
+    return ForwardRun(frames, np.stack(saved_u), np.stack(saved_phi), np.stack(saved_g),
+                      np.array(saved_e) if track_energy else None, float(dt), steps, time.perf_counter() - start)
+
+
+def forward_runs(material, params: dict, rho, frames, s0s, eta_over_s0s=ETA_OVER_S0, prescribed=None, moving=None,
+                 v0=None, body=None, safety: float = 0.5, batch: int = 32, threads: int | None = None) -> list[ForwardRun]:
+    """``forward_run`` (exact-kinematics LPS) at each pair (s0s[k], eta_over_s0s[k]), with the
+    body's own step: equal batches of at most ``batch`` pairs, each one run of ``material.copies``
+    (copy c's bonds under pair c's law), the batches side by side on ``threads`` threads (None: the
+    cores this process may use; ``bond_loops.claimed``) with one torch thread each (restored
+    after). Each run's numbers are its own ``forward_run``'s to the bit; a step's fixed cost is
+    shared by its batch. A run's ``energy`` is None (not tracked)."""
+    s0s, widths = (np.ravel(a).astype(float) for a in np.broadcast_arrays(s0s, eta_over_s0s))
+    n, bonds = material.particles.n, len(material.i)
+    dt = _time_step(material, params, _mass(material, rho), safety)
+    rho = np.broadcast_to(np.asarray(rho, float), (n,))
+    threads = threads or len(os.sched_getaffinity(0))
+    batches = np.array_split(np.arange(len(s0s)), min(len(s0s), -(-len(s0s) // (batch * threads)) * threads))
+
+    def task(t: int) -> list[ForwardRun]:
+        pick = batches[t]
+        k = len(pick)
+        tiled = [None if a is None else np.tile(a, (k,) + (1,) * (np.ndim(a) - 1)) for a in (rho, prescribed, v0)]
+        run = forward_run(material.copies(k), params, tiled[0], frames, np.repeat(s0s[pick], bonds), tiled[1],
+                          _tiled_in_time(moving, k), tiled[2], _tiled_in_time(body, k),
+                          eta_over_s0=np.repeat(widths[pick], bonds), dt=dt, track_energy=False)
+        return [ForwardRun(run.t, run.u[:, c * n:(c + 1) * n], run.phi[:, c * n:(c + 1) * n],
+                           run.intact[:, c * bonds:(c + 1) * bonds], None, run.dt, run.steps, run.wall_time_s / k)
+                for c in range(k)]
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return [run for runs in bond_loops.claimed(task, len(batches), threads, redo=False) for run in runs]
+    finally:
+        torch.set_num_threads(before)
+
+
+def _tiled_in_time(field, k: int):
+    """t -> ``field(t)`` (N, ...) repeated for k copies (None stays None)."""
+    return None if field is None else lambda t: np.tile(field(t), (k, 1))
+
+
+def _mass(material, rho) -> np.ndarray:
+    """The nodal masses rho V (``MASS`` units), rho checked positive."""
+    rho = np.broadcast_to(np.asarray(rho, float), (material.particles.n,))
+    if np.any(rho <= 0):
+        raise ValueError("the density rho must be positive at every node: coarse-grain with a larger cone radius")
+    return MASS * rho * np.asarray(material.particles.volume, float)
+
+
+def _smooth_step(s0, eta_over_s0) -> SmoothStep:
+    """Eq 3.10's law at s0 with the width eta_over_s0 s0 (numbers, or one per bond)."""
+    s0 = torch.as_tensor(positive("s0", s0, "pass the critical stretch"), dtype=torch.float64)
+    width = torch.as_tensor(positive("eta_over_s0", eta_over_s0, "pass eq 3.10's width over s0"), dtype=torch.float64)
+    return SmoothStep(s0, width * s0)
 
 
 def _time_step(material, params, mass, safety) -> float:

@@ -71,6 +71,15 @@ class Material(ABC):
         self.extension_gram = Gram.of_blocks(np.stack([bonds.i, bonds.j], axis=1), d * particles.n, d)
         self.extension_data = torch.cat([-self.unit, self.unit], dim=1).reshape(-1)
 
+    def copies(self, k: int) -> "Material":
+        """``k`` copies of this body side by side as one body, no bond between them (particle
+        c n + p is copy c's p): one run of it is k runs of the body, e.g. at k damage laws."""
+        p = self.particles
+        gap = np.ptp(p.x[:, 0]) + p.h + 2 * self.bonds.delta_max
+        x = np.concatenate([p.x + np.eye(self.dim)[0] * gap * c for c in range(k)])
+        return type(self)(Particles(x, np.tile(p.volume, k), p.h, p.thickness), self.bonds.tiled(k, p.n), self.plane,
+                          self.influence, self.surface_correction)
+
     def grams(self) -> list[Gram]:
         """The Gram operators of the stiffness terms; the bond extensions B first."""
         return [self.extension_gram]

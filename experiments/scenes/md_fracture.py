@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from bayespd.bonds import find_bonds, precrack
+from bayespd.bonds import crossing, find_bonds
 from bayespd.damage import DamageIndex
 from bayespd.discretize import from_points
 from bayespd.infer.calibration import interval_score
@@ -31,7 +31,7 @@ from bayespd.influence import Bernstein
 from bayespd.learn.crack_length import fitted_errors, forecast, length_resolution, log_evidence
 from bayespd.learn.damage_error import cone_average, lagged, shifted, straight_crack_intact
 from bayespd.learn.discrepancy import count_damage, relative_error, relative_mse
-from bayespd.learn.forward import ETA_OVER_S0, forward_run, linear_in_time
+from bayespd.learn.forward import ETA_OVER_S0, forward_run, forward_runs, linear_in_time
 from bayespd.learn.kernel import lps_params
 from bayespd.learn.model_error import fit_relative_error
 from bayespd.learn.md_damage import broken_atom_bonds, cut_coarse_bonds, slit_centre, tip_height
@@ -53,6 +53,7 @@ class Scene:
     tip: np.ndarray          # MD crack tip height per frame (A; NaN before the first break)
     fixed: np.ndarray
     slit_x: float            # A: the pre-crack's line (``slit_centre``)
+    slit_bonds: object       # the bonds the pre-crack removed (``bayespd.bonds.Bonds``)
     moving: object
     v0: np.ndarray
     body: object
@@ -64,6 +65,14 @@ class Scene:
         return forward_run(self.material, self.params, self.rho, t, s0, self.fixed, self.moving, self.v0, self.body,
                            surface=self.surface, eta_over_s0=eta_over_s0)
 
+    def runs(self, s0s, eta_over_s0s) -> list:
+        """Full-record runs at each pair (s0, eta / s0): batched (``forward_runs``), or one at a time
+        under eq 3.18 (its free-surface test reads the body's own coordinates)."""
+        if self.surface is not False:
+            return [self.run(s, eta_over_s0=r) for s, r in zip(s0s, eta_over_s0s)]
+        return forward_runs(self.material, self.params, self.rho, self.time, s0s, eta_over_s0s, self.fixed,
+                            self.moving, self.v0, self.body)
+
 
 def scene(coarse, record, kernel: dict, h: float, pulled: bool, surface: bool = False) -> Scene:
     """The forward problem of a coarse record (``coarse``: the npz of the coarse graining; ``record``:
@@ -74,8 +83,9 @@ def scene(coarse, record, kernel: dict, h: float, pulled: bool, surface: bool = 
     X, t, u = record["X"].values, coarse["time"], coarse["u"]
     centre = slit_centre(X, SLIT_TIP)  # the removed atom column (x = -0.62 A in the records)
     slit = [[centre, x[:, 1].min() - h], [centre, SLIT_TIP]]
-    material = LPS(particles, precrack(particles, find_bonds(particles, delta), slit), plane="strain",
-                   influence=Bernstein(DEGREE))
+    bonds = find_bonds(particles, delta)
+    cut = crossing(particles, bonds, slit)
+    material = LPS(particles, bonds.without(cut), plane="strain", influence=Bernstein(DEGREE))
     params = lps_params(kernel["lambda"], kernel["mu"], kernel["D"], delta)
     pairs, broken = broken_atom_bonds(X, record["U"].values)
     intact = cut_coarse_bonds(x, material.bonds.i, material.bonds.j, X, pairs, broken)
@@ -90,10 +100,10 @@ def scene(coarse, record, kernel: dict, h: float, pulled: bool, surface: bool = 
         v0[:, 0] = speed * (0.5 - x[:, 1] / length) * np.clip(x[:, 0] / half_width, -1.0, 1.0)
         lo, hi = x[:, 0].min() - h / 2, x[:, 0].max() + h / 2
         free = (lambda sites: (sites[:, 0] > lo) & (sites[:, 0] < hi)) if surface else False  # beyond the pulled columns: collar
-        return Scene(material, params, coarse["rho"][0], t, u, phi, intact, tip, fixed, centre, linear_in_time(t, u), v0,
-                     None, free)
-    return Scene(material, params, coarse["rho"][0], t, u, phi, intact, tip, np.zeros(len(x), bool), centre, None, v0,
-                 linear_in_time(t, coarse["b"]), surface)
+        return Scene(material, params, coarse["rho"][0], t, u, phi, intact, tip, fixed, centre, bonds.without(~cut),
+                     linear_in_time(t, u), v0, None, free)
+    return Scene(material, params, coarse["rho"][0], t, u, phi, intact, tip, np.zeros(len(x), bool), centre,
+                 bonds.without(~cut), None, v0, linear_in_time(t, coarse["b"]), surface)
 
 
 def crack_history(time_ps, tip, still: float = 2.5, after: int = 3) -> dict:
@@ -119,13 +129,20 @@ def metrics(sc: Scene, run, frames=slice(None)) -> dict:
     """The paper's errors of a forward run over ``frames`` (bayespd.learn.discrepancy): displacement
     (free nodes) and damage (all nodes), ``*_rel_error`` (norm ratio) and ``*_rel_mse`` (its square,
     the paper's words read literally); damage of the kernel-weighted index (``damage_*``) and of
-    the paper's eq 5.4 count (``damage_eq54_*``), the latter the one the targets use."""
+    the paper's eq 5.4 count (``damage_eq54_*``), the latter the one the targets use; and eq 5.4 as
+    printed, over every x_j in B_delta with the slit's bonds as broken (``damage_eq54_with_slit_*``:
+    the slit then counts in both fields, and in every frame)."""
     free = ~sc.fixed
     u, u_md = run.u[frames], sc.u[frames]
     out = {"displacement_rel_error": relative_error(u, u_md, free), "displacement_rel_mse": relative_mse(u, u_md, free)}
-    b = sc.material.bonds
-    eq54 = [count_damage(len(free), b.i, b.j, b.length, float(sc.params["delta"]), g[frames]) for g in (run.intact, sc.intact)]
-    for name, (pred, data) in {"damage": (run.phi[frames], sc.phi[frames]), "damage_eq54": eq54}.items():
+    b, s = sc.material.bonds, sc.slit_bonds
+
+    def eq54(cut=None):
+        return [count_damage(len(free), b.i, b.j, b.length, float(sc.params["delta"]), g[frames], cut)
+                for g in (run.intact, sc.intact)]
+    readings = {"damage": (run.phi[frames], sc.phi[frames]), "damage_eq54": eq54(),
+                "damage_eq54_with_slit": eq54((s.i, s.j, s.length))}
+    for name, (pred, data) in readings.items():
         try:
             out[f"{name}_rel_error"], out[f"{name}_rel_mse"] = relative_error(pred, data), relative_mse(pred, data)
         except ValueError:  # no MD damage in these frames
@@ -244,7 +261,7 @@ def damage_posterior(sc: Scene, half: int, bounds, draws: int = 200, seed: int =
 
 def _grid_runs(sc: Scene, s0s, widths):
     """A full-record run at every (s0, eta / s0) of the grid (s0 major), and their crack lengths."""
-    runs = [sc.run(s, eta_over_s0=r) for s in s0s for r in widths]
+    runs = sc.runs(np.repeat(s0s, len(widths)), np.tile(widths, len(s0s)))
     md = np.asarray(crack_history(sc.time, sc.tip)["length_A"])
     lengths = np.array([crack_history(sc.time, pd_tip(sc, r))["length_A"] for r in runs])
     return runs, _CrackLengths(sc.time, md, lengths, int(np.flatnonzero(md > 0)[0]), length_resolution(sc.material.bonds.h))

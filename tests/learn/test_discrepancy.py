@@ -3,7 +3,7 @@ a twice finer grid (no inverse crime)."""
 import numpy as np
 import pytest
 
-from bayespd.bonds import find_bonds, precrack
+from bayespd.bonds import crossing, find_bonds, precrack
 from bayespd.discretize import from_points
 from bayespd.influence import Bernstein
 from bayespd.learn.discrepancy import count_damage, learn_s0, relative_error, relative_mse
@@ -59,6 +59,27 @@ def test_count_damage_is_eq_5_4_on_a_square_grid():
     assert len(other) == 2 and np.allclose(phi[0, other], 1 / 8, rtol=1e-15)
     with pytest.raises(ValueError, match="no bond within delta"):
         count_damage(25, bonds.i, bonds.j, bonds.length, 0.5, intact)
+
+
+def test_count_damage_counts_a_pre_cracks_bonds_as_broken_when_passed():
+    """Eq 5.4 as printed sums over all of B_delta, so a slit's bonds count as lost. Unit grid 5 x 5,
+    delta = 1.5, a slit at x = 1.5 from below the sheet to y = 2.25 cuts the horizontal bonds of
+    rows 0-2 and the diagonals crossing it at y = 0.5 and 1.5. By hand: node (1, 1) loses 3 of its
+    8 bonds, (1, 2) 2 of 8 (its diagonal to (2, 3) crosses at 2.5, above the slit), the edge node
+    (1, 0) 2 of 5; column 4 nothing. Without ``cut`` every node is intact."""
+    g = np.arange(5.0)
+    x = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)  # node (a, b) at index 5 a + b
+    particles = from_points(x, np.ones(25), h=1.0)
+    bonds = find_bonds(particles, 1.5)
+    slit = crossing(particles, bonds, [[1.5, -1.0], [1.5, 2.25]])
+    kept, lost = bonds.without(slit), bonds.without(~slit)
+    intact = np.ones((2, len(kept.i)))
+    phi = count_damage(25, kept.i, kept.j, kept.length, 1.5, intact, cut=(lost.i, lost.j, lost.length))
+    assert phi.shape == (2, 25) and np.array_equal(phi[0], phi[1])
+    assert phi[0, 6] == pytest.approx(3 / 8, rel=1e-15) and phi[0, 7] == pytest.approx(2 / 8, rel=1e-15)
+    assert phi[0, 5] == pytest.approx(2 / 5, rel=1e-15) and np.all(phi[0, 20:] == 0.0)
+    assert np.all(count_damage(25, kept.i, kept.j, kept.length, 1.5, intact) == 0.0)
+    assert len(precrack(particles, bonds, [[1.5, -1.0], [1.5, 2.25]]).i) == len(kept.i)
 
 
 def test_brent_finds_the_minimum_of_a_smooth_discrepancy_in_log_s0():

@@ -93,6 +93,23 @@ def test_numeric_stiffness_equals_the_differentiable_stiffness(lattice, law):
 
 
 @pytest.mark.parametrize("law", LAWS)
+def test_copies_are_one_body_whose_stiffness_is_the_bodys_k_times_over(lattice, law):
+    """``copies(3)``: the stiffness is block diagonal, each block the body's own (the same bits: the
+    copies' bonds and weights are the body's), and no bond joins two copies."""
+    p, bonds = lattice
+    mat = law(p, bonds, influence=Bernstein(2))
+    params = {**params_for(mat, p.n), "D": torch.tensor([1.0, 0.5, 2.0], dtype=torch.float64)}
+    params = {k: v for k, v in params.items() if k in mat.param_names}
+    many = mat.copies(3)
+    tiled = {k: v.repeat(3) if torch.is_tensor(v) and v.shape == (p.n,) else v for k, v in params.items()}
+    K = mat.pattern.matrix(mat.numeric_stiffness(params)).toarray()
+    K3 = many.pattern.matrix(many.numeric_stiffness(tiled)).toarray()
+    assert many.particles.n == 3 * p.n and len(many.i) == 3 * len(mat.i)
+    assert np.array_equal(K3, np.kron(np.eye(3), K))
+    assert np.all(many.bonds.i // p.n == many.bonds.j // p.n)
+
+
+@pytest.mark.parametrize("law", LAWS)
 def test_stiffness_in_chosen_rows_is_those_rows_of_the_stiffness_with_their_gradient(lattice, law):
     """K's entries in a few rows (unsorted, repeated, a node's two dofs and one more) from the
     products of those rows alone: the full stiffness's entries there, in the pattern's order, to
