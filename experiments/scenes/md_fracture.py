@@ -156,25 +156,32 @@ def damage_diagnosis(sc: Scene, run, frames=slice(None), lags=range(-3, 4), shif
     (timing), with the PD field moved by whole grid columns (crack line), with both fields
     cone-averaged over the horizon (the same operator on both: paths closer than delta agree), of
     a straight crack along the slit line with the MD tip history (the MD timing and length
-    exactly: the part due to the MD path alone), and of the PD run against that straight crack."""
-    x, b = sc.material.particles.x, sc.material.bonds
+    exactly: the part due to the MD path alone), and of the PD run against that straight crack; the
+    straight crack's also with the slit's bonds counted (``metrics``' ``damage_eq54_with_slit``), over
+    ``frames`` and over the whole record."""
+    x, b, s = sc.material.particles.x, sc.material.bonds, sc.slit_bonds
     delta = float(sc.params["delta"])
 
-    def eq54(intact):
-        return count_damage(len(x), b.i, b.j, b.length, delta, intact)
+    def eq54(intact, cut=None):
+        return count_damage(len(x), b.i, b.j, b.length, delta, intact, cut)
 
-    def error(pred, data):
-        return relative_error(pred[frames], data[frames])
+    def error(pred, data, over=frames):
+        return relative_error(pred[over], data[over])
 
     pd, md = eq54(run.intact), eq54(sc.intact)
     by_lag = {int(k): error(lagged(pd, k), md) for k in lags}
     by_shift = {float(c * b.h): error(shifted(pd, x, [c * b.h, 0.0]), md) for c in shifts}
-    straight = eq54(straight_crack_intact(x, b.i, b.j, sc.slit_x, SLIT_TIP, sc.tip))
+    straight_intact = straight_crack_intact(x, b.i, b.j, sc.slit_x, SLIT_TIP, sc.tip)
+    straight = eq54(straight_intact)
+    slit = (s.i, s.j, s.length)
+    with_slit = eq54(straight_intact, slit), eq54(sc.intact, slit)
     lag, shift = min(by_lag, key=by_lag.get), min(by_shift, key=by_shift.get)
     return {"as_run": error(pd, md), "by_lag_frames": by_lag, "best_lag_frames": lag, "at_best_lag": by_lag[lag],
             "by_shift_A": by_shift, "best_shift_A": shift, "at_best_shift": by_shift[shift],
             "both_cone_averaged_over_delta": error(cone_average(pd, x, delta), cone_average(md, x, delta)),
-            "straight_crack_md_tip_vs_md": error(straight, md), "pd_vs_straight_crack_md_tip": error(pd, straight)}
+            "straight_crack_md_tip_vs_md": error(straight, md), "pd_vs_straight_crack_md_tip": error(pd, straight),
+            "straight_crack_md_tip_vs_md_with_slit": error(*with_slit),
+            "straight_crack_md_tip_vs_md_with_slit_whole_record": error(*with_slit, over=slice(None))}
 
 
 def pd_tip(sc: Scene, run) -> np.ndarray:
