@@ -395,8 +395,8 @@ def _bands(pick, pred, data, crack: _CrackLengths, half: int, rng) -> dict:
     """The 90 % bands of the predictions ``pred`` (draws at the grid points ``pick``) and of the crack
     lengths of frames ``half`` on (the runs' at ``pick`` plus their error fitted on frames to
     half - 1, ``bayespd.learn.crack_length``; and the runs' alone), with the share of the MD data
-    inside; the drawn runs' initiation time and running speed (90 % intervals, MD's inside?) and the
-    share of them that arrest (``crack_history``)."""
+    inside; the drawn runs' initiation time and running speed (90 % intervals, MD's inside?), the
+    share of them that arrest and the 90 % interval of their arrest times (``crack_history``)."""
     lo, hi = np.quantile(pred, [ALPHA / 2, 1 - ALPHA / 2], axis=0)
     lengths = np.stack([crack.forecast(rng, k, half) for k in pick])
     out = {"extrapolation_band90_node_frame_coverage": float(_inside(data, lo, hi).mean())}
@@ -411,6 +411,9 @@ def _bands(pick, pred, data, crack: _CrackLengths, half: int, rng) -> dict:
         q05, q95 = np.quantile(values, [ALPHA / 2, 1 - ALPHA / 2]).tolist() if values else (None, None)
         out[f"crack_{key}"] = {"q05": q05, "q95": q95, "md": md[key], "runs_without_crack": len(pick) - len(values),
                                "md_inside": bool(values) and q05 <= md[key] <= q95}
-    out["crack_arrest"] = {"share_of_runs_arrested": float(np.mean([h["arrest_ps"] is not None for h in histories])),
-                           "md_arrest_ps": md["arrest_ps"]}
+    arrests = [h["arrest_ps"] for h in histories if h["arrest_ps"] is not None]
+    q05, q95 = np.quantile(arrests, [ALPHA / 2, 1 - ALPHA / 2]).tolist() if arrests else (None, None)
+    out["crack_arrest"] = {"share_of_runs_arrested": len(arrests) / len(pick), "md_arrest_ps": md["arrest_ps"],
+                           "arrested_q05_ps": q05, "arrested_q95_ps": q95,
+                           "md_inside": bool(arrests) and md["arrest_ps"] is not None and q05 <= md["arrest_ps"] <= q95}
     return out
