@@ -155,7 +155,11 @@ def forward_runs(material, params: dict, rho, frames, s0s, eta_over_s0s=ETA_OVER
     cores this process may use; ``bond_loops.claimed``) with one torch thread each (restored
     after). Each run's numbers are its own ``forward_run``'s to the bit; a step's fixed cost is
     shared by its batch. A run's ``energy`` is None (not tracked)."""
-    s0s, widths = (np.ravel(a).astype(float) for a in np.broadcast_arrays(s0s, eta_over_s0s))
+    s0s, widths = np.ravel(s0s).astype(float), np.ravel(eta_over_s0s).astype(float)
+    if len(s0s) == 0 or len(widths) not in (1, len(s0s)):
+        raise ValueError(f"pass at least one s0 and one eta_over_s0 per s0 (or one for all); got {len(s0s)} and "
+                         f"{len(widths)}")
+    widths = np.broadcast_to(widths, s0s.shape)
     n, bonds = material.particles.n, len(material.i)
     dt = _time_step(material, params, _mass(material, rho), safety)
     rho = np.broadcast_to(np.asarray(rho, float), (n,))

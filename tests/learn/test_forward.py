@@ -139,3 +139,9 @@ def test_bad_input_is_refused_with_the_fix():
         forward_run(material, PARAMS, RHO, [0.1, 0.2])
     with pytest.raises(ValueError, match="eta_over_s0"):
         forward_run(material, PARAMS, RHO, [0.0, 0.1], 0.1, eta_over_s0=0.0)
+    with pytest.raises(ValueError, match="one eta_over_s0 per s0"):
+        forward_runs(material, PARAMS, RHO, [0.0, 0.1], [0.1, 0.2, 0.3], [0.25, 0.5])
+    with pytest.raises(ValueError, match="at least one s0"):
+        forward_runs(material, PARAMS, RHO, [0.0, 0.1], [])
+    with pytest.raises(ValueError, match="s0 must be positive"):
+        forward_runs(material, PARAMS, RHO, [0.0, 0.1], [0.1, -0.1])
