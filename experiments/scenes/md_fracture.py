@@ -207,7 +207,8 @@ WIDTHS = np.geomspace(0.05, 0.8, 5)  # eq 3.10's eta / s0 on the grid: near the 
 ALPHA = 0.1  # the bands' level: central 90 % intervals
 
 
-def damage_posterior(sc: Scene, half: int, bounds, draws: int = 200, seed: int = 0, widths=WIDTHS) -> dict:
+def damage_posterior(sc: Scene, half: int, bounds, draws: int = 200, seed: int = 0, widths=WIDTHS,
+                     others: dict | None = None) -> dict:
     """Grid posteriors of eq 3.10's (log s0, log eta / s0) from the training frames' displacements,
     under six noise models, and their crack lengths; 90 % predictive bands for frames half .. end
     and of the crack-length history; the noise model chosen by leave-future-out on the training frames.
@@ -239,25 +240,33 @@ def damage_posterior(sc: Scene, half: int, bounds, draws: int = 200, seed: int =
     half - 1 (the training frames only; they hold the crack's initiation), scored by the mean
     interval score of its 90 % displacement bands over those values (Gneiting & Raftery 2007 eq 43:
     width plus 2 / alpha times the miss, a proper score of the interval); the lowest is the model
-    the bands are reported with (Buerkner, Gabry & Vehtari 2020's leave-future-out, one split)."""
+    the bands are reported with (Buerkner, Gabry & Vehtari 2020's leave-future-out, one split).
+
+    ``others``: {test: (scene, s0 scale)}: each model's draws predict the whole record of another
+    scene (the paper's tests (ii), (iii): another load, another grid with s0 scaled), their runs
+    there plus their noise (``_elsewhere``), with the share of its MD node-frames inside the bands."""
     s0s = np.exp(np.linspace(np.log(bounds[0]), np.log(bounds[1]), 61))
     widths = np.asarray(widths, float)
     runs, crack = _grid_runs(sc, s0s, widths)
     cut = half // 2
     held = {name: _predictive(sc, runs, crack, name, cut, slice(cut, half), draws, seed) for name in NOISE_MODELS}
-    scores = {name: interval_score(pred, data, 1 - ALPHA) for name, (_, _, pred, data, _) in held.items()}
-    coarse = {name: _predictive(sc, runs, crack, name, half, slice(half, None), 1, seed)[0]  # the weights only
+    scores = {name: interval_score(p.pred, p.data, 1 - ALPHA) for name, p in held.items()}
+    coarse = {name: _predictive(sc, runs, crack, name, half, slice(half, None), 1, seed).weights  # the weights only
               .reshape(len(s0s), -1).sum(1) for name in NOISE_MODELS}
     s0s, neglected = _zoom(s0s, coarse)
     runs, crack = _grid_runs(sc, s0s, widths)
+    fits = {name: _predictive(sc, runs, crack, name, half, slice(half, None), draws, seed) for name in NOISE_MODELS}
+    grid = (np.repeat(s0s, len(widths)), np.tile(widths, len(s0s)))
+    elsewhere = {test: _elsewhere(other, scale, grid, fits, sc.time[half - 1], np.random.default_rng(seed + 2))
+                 for test, (other, scale) in (others or {}).items()}
     out = {}
-    for name in NOISE_MODELS:
-        w, pick, pred, data, fitted = _predictive(sc, runs, crack, name, half, slice(half, None), draws, seed)
-        lo, hi = np.quantile(held[name][2], [ALPHA / 2, 1 - ALPHA / 2], axis=0)
-        out[name] = {**fitted, "leave_future_out_interval_score_A": scores[name],
-                     "leave_future_out_band90_node_frame_coverage": float(_inside(held[name][3], lo, hi).mean()),
-                     **_marginals(w.reshape(len(s0s), len(widths)), s0s, widths),
-                     **_bands(pick, pred, data, crack, half, np.random.default_rng(seed + 1))}
+    for name, fit in fits.items():
+        lo, hi = np.quantile(held[name].pred, [ALPHA / 2, 1 - ALPHA / 2], axis=0)
+        out[name] = {**fit.fitted, "leave_future_out_interval_score_A": scores[name],
+                     "leave_future_out_band90_node_frame_coverage": float(_inside(held[name].data, lo, hi).mean()),
+                     **_marginals(fit.weights.reshape(len(s0s), len(widths)), s0s, widths),
+                     **_bands(fit.pick, fit.pred, fit.data, crack, half, np.random.default_rng(seed + 1)),
+                     **{f"{test}_band90_node_frame_coverage": cover[name] for test, cover in elsewhere.items()}}
     free = ~sc.fixed
     sse = np.array([((r.u[1:half, free] - sc.u[1:half, free]) ** 2).sum() for r in runs])
     return {"s0_grid": s0s.tolist(), "eta_over_s0_grid": widths.tolist(), "coarse_mass_left_out": neglected,
@@ -308,10 +317,25 @@ class _CrackLengths:
         return forecast(rng, self.md, self.runs[k], self.first, end, self.q)
 
 
+@dataclass
+class _Prediction:
+    """A noise model fitted to the training frames: the grid weights, the draws' grid points, their
+    predictive draws (draws, frames, free nodes, 2) and the MD data there, the fit's numbers, and
+    each draw's error level (sd in A; for ``relative`` models relative to a frame's rms PD
+    displacement, times (t / t_fit)^growth)."""
+    weights: np.ndarray
+    pick: np.ndarray
+    pred: np.ndarray
+    data: np.ndarray
+    fitted: dict
+    level: np.ndarray
+    growth: np.ndarray
+    relative: bool
+
+
 def _predictive(sc: Scene, runs, crack: _CrackLengths, name: str, end: int, late: slice, draws: int, seed: int):
-    """(grid weights, the draws' grid points, predictive draws (draws, frames, free nodes, 2), the
-    MD data there, the fit's numbers) of noise model ``name`` fitted to frames 1 .. end - 1 and
-    predicting frames ``late`` (``damage_posterior``'s docstring)."""
+    """Noise model ``name`` fitted to frames 1 .. end - 1 predicting frames ``late`` (a ``_Prediction``;
+    ``damage_posterior``'s docstring)."""
     free = ~sc.fixed
     crack_logp = np.array([crack.log_evidence(k, end) for k in range(len(runs))])
     if name == "relative_correlated":
@@ -334,18 +358,41 @@ def _predictive(sc: Scene, runs, crack: _CrackLengths, name: str, end: int, late
     rng = np.random.default_rng(seed)
     chosen = rng.choice(len(joint), size=draws, p=joint)
     pick, shape = chosen // len(growth), chosen % len(growth)
+    level, gamma = np.sqrt(sse[pick, shape] / values), growth[shape]
     data = sc.u[late][:, free]
-    pred = []
-    for k, j in zip(pick, shape):
-        u = runs[k].u[late][:, free]
-        sd = np.sqrt(sse[k, j] / values)
-        if relative:
-            sd = sd * (np.sqrt((u**2).mean((1, 2))) * (t[late] / t[end - 1]) ** growth[j])[:, None, None]
-        pred.append(u + sd * rng.standard_normal(data.shape))
+    pred = np.stack([u + _error_sd(u, t[late], a, g, relative, t[end - 1]) * rng.standard_normal(data.shape)
+                     for u, a, g in zip((runs[k].u[late][:, free] for k in pick), level, gamma)])
     fitted = {"n": int(n)}
     if len(growth) > 1:
         fitted["growth_exponent_posterior"] = dict(zip(growth.tolist(), joint.reshape(len(runs), -1).sum(0).tolist()))
-    return joint.reshape(len(runs), -1).sum(1), pick, np.stack(pred), data, fitted
+    return _Prediction(joint.reshape(len(runs), -1).sum(1), pick, pred, data, fitted, level, gamma, relative)
+
+
+def _error_sd(u, times, level: float, growth: float, relative: bool, t_fit: float):
+    """A draw's error sd per frame (F, 1, 1) for its run's displacements u (F, n, 2) at ``times``."""
+    if not relative:
+        return np.full((len(u), 1, 1), level)
+    return level * (np.sqrt((u**2).mean((1, 2))) * (times / t_fit) ** growth)[:, None, None]
+
+
+def _elsewhere(other: Scene, scale: float, grid, fits: dict, t_fit: float, rng) -> dict:
+    """Per noise model: the share of ``other``'s MD node-frames (free nodes, frames 1 on) inside the
+    90 % bands of its draws carried there: each drawn grid point's run of ``other`` (s0 times
+    ``scale``, the same eta / s0) plus an error of the draw's level (its marginal sd: the
+    correlated model's spatial correlation leaves each value's band as it is)."""
+    s0s, widths = grid
+    points = np.unique(np.concatenate([fit.pick for fit in fits.values()]))
+    runs = dict(zip(points, other.runs(s0s[points] * scale, widths[points])))
+    free, t = ~other.fixed, other.time[1:]
+    data = other.u[1:, free]
+    cover = {}
+    for name, fit in fits.items():
+        pred = [runs[k].u[1:, free] for k in fit.pick]
+        pred = np.stack([u + _error_sd(u, t, a, g, fit.relative, t_fit) * rng.standard_normal(data.shape)
+                         for u, a, g in zip(pred, fit.level, fit.growth)])
+        lo, hi = np.quantile(pred, [ALPHA / 2, 1 - ALPHA / 2], axis=0)
+        cover[name] = float(_inside(data, lo, hi).mean())
+    return cover
 
 
 def _relative_correlated(sc: Scene, runs, crack_logp, end: int, late: slice, draws: int, seed: int):
@@ -368,14 +415,14 @@ def _relative_correlated(sc: Scene, runs, crack_logp, end: int, late: slice, dra
     values = residuals[0].size
     rng = np.random.default_rng(seed)
     pick = rng.choice(len(runs), size=draws, p=w)
-    pred = []
+    pred, level = [], []
     for k in pick:
         u = runs[k].u[late][:, free]
-        r = np.sqrt(term.quadratic(residuals[k], scales[k]) / rng.chisquare(values))
-        pred.append(u + term.draw(rng, np.sqrt((u**2).mean((1, 2))), r, 2))
+        level.append(np.sqrt(term.quadratic(residuals[k], scales[k]) / rng.chisquare(values)))
+        pred.append(u + term.draw(rng, np.sqrt((u**2).mean((1, 2))), level[-1], 2))
     fitted = {"ell_A": term.ell, "tau_ps": term.tau, "log_evidence_ell_by_tau": table.tolist(),
               "r_at_best": float(np.sqrt(term.quadratic(residuals[best], scales[best]) / values))}
-    return w, pick, np.stack(pred), sc.u[late][:, free], fitted
+    return _Prediction(w, pick, np.stack(pred), sc.u[late][:, free], fitted, np.array(level), np.zeros(draws), True)
 
 
 def _inside(data, lo, hi) -> np.ndarray:

@@ -1,0 +1,55 @@
+"""The damage posterior (bayespd.scenes.md_fracture): its zoomed s0 grid, and its bands carried to
+another scene."""
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from bayespd.scenes.md_fracture import _elsewhere, _Prediction, _zoom
+
+S0 = np.exp(np.linspace(np.log(0.01), np.log(1.0), 61))
+
+
+def weights(centre, sd, tail=0.0):
+    """A log-normal marginal on the coarse grid, with ``tail`` of the mass spread evenly above it."""
+    w = stats.norm.pdf(np.log(S0), np.log(centre), sd)
+    w = (1 - tail) * w / w.sum() + tail * (S0 > 3 * centre) / (S0 > 3 * centre).sum()
+    return w
+
+
+def test_the_zoom_holds_every_model_but_the_mass_it_reports():
+    models = {"sharp": weights(0.14, 0.02), "wide": weights(0.13, 0.15, tail=4e-4)}
+    fine, lost = _zoom(S0, models)
+    assert len(fine) == 61 and np.allclose(np.diff(np.log(fine)), np.diff(np.log(fine))[0])
+    assert lost <= 1e-3
+    for w in models.values():  # the mass outside the zoomed range is what it reports, at most
+        assert w[(S0 < fine[0]) | (S0 > fine[-1])].sum() <= lost + 1e-15
+    # a tail of 4e-4 far above the peak is left out rather than stretching the grid 7-fold
+    assert fine[-1] < 0.3 and fine[0] > 0.05
+    assert np.log(fine[-1] / fine[0]) / 60 < np.log(S0[1] / S0[0]) / 3  # 3x finer than the coarse step, even for the wide one
+
+
+@pytest.mark.parametrize("relative", [False, True])
+def test_bands_carried_to_another_scene_hold_their_level(relative):
+    """Another scene whose MD data are one run plus independent N(0, sd^2) errors, sd = 0.3 A (or
+    0.2 times each frame's rms displacement), and 200 draws of that run with that level: a value
+    lies inside the 5-95 % quantiles of 200 draws with probability 190.05 / 201 - 10.95 / 201 =
+    0.891 (order statistics), a node-frame (both components) 0.891^2 = 0.794; over 2,000 node-frames
+    the share is within 4 binomial sds (0.036) of it. Twice the level would give 0.998."""
+    rng = np.random.default_rng(3)
+    frames, nodes = 21, 100
+    t = np.linspace(0.0, 2.0, frames)
+    u_run = t[:, None, None] * rng.normal(1.0, 0.3, (1, nodes, 2))
+    rms = np.sqrt((u_run**2).mean((1, 2)))
+    level = 0.2 if relative else 0.3
+    sd = level * rms[:, None, None] if relative else level
+    other = SimpleNamespace(fixed=np.zeros(nodes, bool), time=t, u=u_run + sd * rng.standard_normal(u_run.shape),
+                            runs=lambda s0s, widths: [SimpleNamespace(u=u_run) for _ in s0s])
+    other.u[0] = 0.0  # frame 0 is the reference and is left out
+    draws = 200
+    fit = _Prediction(np.ones(1), np.zeros(draws, int), None, None, {}, np.full(draws, level), np.zeros(draws), relative)
+    cover = _elsewhere(other, 1.0, (np.ones(1), np.ones(1)), {"model": fit}, 1.0, rng)["model"]
+    assert abs(cover - 0.891**2) < 0.036
+    fit.level = 2 * fit.level
+    assert _elsewhere(other, 1.0, (np.ones(1), np.ones(1)), {"model": fit}, 1.0, rng)["model"] > 0.95
