@@ -84,7 +84,7 @@ def test_modes_far_below_the_largest_mass_are_not_fitted():
     assert kept(modes, [0.0, -3.0, -8.0, None]) == [0, 1, 3]
 
 
-@pytest.mark.parametrize("pull_sd", [2.0, 1.5])
+@pytest.mark.parametrize("pull_sd", [pytest.param(2.0, marks=pytest.mark.slow), 1.5])  # 12 s each: one in the default run
 def test_weighted_nuts_puts_each_basin_at_its_mass(pull_sd):
     """Two basins 1.5 and 3.1 nats apart. With modes='best' every draw is in the +2 basin;
     with modes='weighted' the share of draws in it is the exact posterior mass of x > 0 (by
