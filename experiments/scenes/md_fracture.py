@@ -244,7 +244,8 @@ def damage_posterior(sc: Scene, half: int, bounds, draws: int = 200, seed: int =
 
     ``others``: {test: (scene, s0 scale)}: each model's draws predict the whole record of another
     scene (the paper's tests (ii), (iii): another load, another grid with s0 scaled), their runs
-    there plus their noise (``_elsewhere``), with the share of its MD node-frames inside the bands."""
+    there plus their noise (``_elsewhere``): the share of its MD node-frames inside the bands, and
+    the runs' crack histories against MD's."""
     s0s = np.exp(np.linspace(np.log(bounds[0]), np.log(bounds[1]), 61))
     widths = np.asarray(widths, float)
     runs, crack = _grid_runs(sc, s0s, widths)
@@ -266,7 +267,7 @@ def damage_posterior(sc: Scene, half: int, bounds, draws: int = 200, seed: int =
                      "leave_future_out_band90_node_frame_coverage": float(_inside(held[name].data, lo, hi).mean()),
                      **_marginals(fit.weights.reshape(len(s0s), len(widths)), s0s, widths),
                      **_bands(fit.pick, fit.pred, fit.data, crack, half, np.random.default_rng(seed + 1)),
-                     **{f"{test}_band90_node_frame_coverage": cover[name] for test, cover in elsewhere.items()}}
+                     **{test: carried[name] for test, carried in elsewhere.items()}}
     free = ~sc.fixed
     sse = np.array([((r.u[1:half, free] - sc.u[1:half, free]) ** 2).sum() for r in runs])
     return {"s0_grid": s0s.tolist(), "eta_over_s0_grid": widths.tolist(), "coarse_mass_left_out": neglected,
@@ -376,23 +377,27 @@ def _error_sd(u, times, level: float, growth: float, relative: bool, t_fit: floa
 
 
 def _elsewhere(other: Scene, scale: float, grid, fits: dict, t_fit: float, rng) -> dict:
-    """Per noise model: the share of ``other``'s MD node-frames (free nodes, frames 1 on) inside the
-    90 % bands of its draws carried there: each drawn grid point's run of ``other`` (s0 times
-    ``scale``, the same eta / s0) plus an error of the draw's level (its marginal sd: the
-    correlated model's spatial correlation leaves each value's band as it is)."""
+    """Per noise model, its draws carried to ``other``: each drawn grid point's run of ``other`` (s0
+    times ``scale``, the same eta / s0) plus an error of the draw's level (its marginal sd: the
+    correlated model's spatial correlation leaves each value's band as it is); the share of the
+    MD node-frames (free nodes, frames 1 on) inside their 90 % bands, and the runs' crack histories
+    against MD's (``_history_intervals``)."""
     s0s, widths = grid
     points = np.unique(np.concatenate([fit.pick for fit in fits.values()]))
     runs = dict(zip(points, other.runs(s0s[points] * scale, widths[points])))
+    histories = {k: crack_history(other.time, pd_tip(other, run)) for k, run in runs.items()}
+    md = crack_history(other.time, other.tip)
     free, t = ~other.fixed, other.time[1:]
     data = other.u[1:, free]
-    cover = {}
+    out = {}
     for name, fit in fits.items():
         pred = [runs[k].u[1:, free] for k in fit.pick]
         pred = np.stack([u + _error_sd(u, t, a, g, fit.relative, t_fit) * rng.standard_normal(data.shape)
                          for u, a, g in zip(pred, fit.level, fit.growth)])
         lo, hi = np.quantile(pred, [ALPHA / 2, 1 - ALPHA / 2], axis=0)
-        cover[name] = float(_inside(data, lo, hi).mean())
-    return cover
+        out[name] = {"band90_node_frame_coverage": float(_inside(data, lo, hi).mean()),
+                     **_history_intervals([histories[k] for k in fit.pick], md)}
+    return out
 
 
 def _relative_correlated(sc: Scene, runs, crack_logp, end: int, late: slice, draws: int, seed: int):
@@ -442,8 +447,7 @@ def _bands(pick, pred, data, crack: _CrackLengths, half: int, rng) -> dict:
     """The 90 % bands of the predictions ``pred`` (draws at the grid points ``pick``) and of the crack
     lengths of frames ``half`` on (the runs' at ``pick`` plus their error fitted on frames to
     half - 1, ``bayespd.learn.crack_length``; and the runs' alone), with the share of the MD data
-    inside; the drawn runs' initiation time and running speed (90 % intervals, MD's inside?), the
-    share of them that arrest and the 90 % interval of their arrest times (``crack_history``)."""
+    inside; and the drawn runs' crack histories (``_history_intervals``)."""
     lo, hi = np.quantile(pred, [ALPHA / 2, 1 - ALPHA / 2], axis=0)
     lengths = np.stack([crack.forecast(rng, k, half) for k in pick])
     out = {"extrapolation_band90_node_frame_coverage": float(_inside(data, lo, hi).mean())}
@@ -452,15 +456,21 @@ def _bands(pick, pred, data, crack: _CrackLengths, half: int, rng) -> dict:
         inside = (crack.md[half:] >= c_lo) & (crack.md[half:] <= c_hi)
         out |= {f"{name}_band90_A": {"q05": c_lo.tolist(), "q95": c_hi.tolist()},
                 f"{name}_md_inside_band_share_of_forecast_frames": float(inside.mean())}
-    histories, md = [crack.history(crack.runs[k]) for k in pick], crack.history(crack.md)
+    return out | _history_intervals([crack.history(crack.runs[k]) for k in pick], crack.history(crack.md))
+
+
+def _history_intervals(histories: list, md: dict) -> dict:
+    """Of drawn runs' ``crack_history``s: 90 % intervals of the initiation time and running speed
+    (MD's inside?), the share that arrest and the 90 % interval of their arrest times."""
+    out = {}
     for key in ("initiation_ps", "speed_A_per_ps"):
         values = [h[key] for h in histories if h[key] is not None]
         q05, q95 = np.quantile(values, [ALPHA / 2, 1 - ALPHA / 2]).tolist() if values else (None, None)
-        out[f"crack_{key}"] = {"q05": q05, "q95": q95, "md": md[key], "runs_without_crack": len(pick) - len(values),
-                               "md_inside": bool(values) and q05 <= md[key] <= q95}
+        out[f"crack_{key}"] = {"q05": q05, "q95": q95, "md": md[key], "runs_without_crack": len(histories) - len(values),
+                               "md_inside": bool(values) and md[key] is not None and q05 <= md[key] <= q95}
     arrests = [h["arrest_ps"] for h in histories if h["arrest_ps"] is not None]
     q05, q95 = np.quantile(arrests, [ALPHA / 2, 1 - ALPHA / 2]).tolist() if arrests else (None, None)
-    out["crack_arrest"] = {"share_of_runs_arrested": len(arrests) / len(pick), "md_arrest_ps": md["arrest_ps"],
+    out["crack_arrest"] = {"share_of_runs_arrested": len(arrests) / len(histories), "md_arrest_ps": md["arrest_ps"],
                            "arrested_q05_ps": q05, "arrested_q95_ps": q95,
                            "md_inside": bool(arrests) and md["arrest_ps"] is not None and q05 <= md["arrest_ps"] <= q95}
     return out
