@@ -149,7 +149,8 @@ def forward_run(material, params: dict, rho, frames, s0: float | None = None, pr
 
 def forward_runs(material, params: dict, rho, frames, s0s, eta_over_s0s=ETA_OVER_S0, prescribed=None, moving=None,
                  v0=None, body=None, safety: float = 0.5, batch: int = 32, threads: int | None = None) -> list[ForwardRun]:
-    """``forward_run`` (exact-kinematics LPS) at each pair (s0s[k], eta_over_s0s[k]), with the
+    """``forward_run`` (the exact-kinematics force; eq 3.18 reads the body's own coordinates, so not
+    that) at each pair (s0s[k], eta_over_s0s[k]), with the
     body's own step: equal batches of at most ``batch`` pairs, each one run of ``material.copies``
     (copy c's bonds under pair c's law), the batches side by side on ``threads`` threads (None: the
     cores this process may use; ``bond_loops.claimed``) with one torch thread each (restored
