@@ -6,7 +6,7 @@ import pytest
 import torch
 
 import bayespd as bp
-from bayespd.bonds import check_horizon, partial_volume, precrack
+from bayespd.bonds import _lattice_pairs, check_horizon, partial_volume, precrack
 from bayespd.influence import Bernstein
 
 
@@ -131,6 +131,33 @@ def test_find_bonds_finds_every_pair_once_against_brute_force(dim):
     np.testing.assert_array_equal(bonds.xi, x[bonds.j] - x[bonds.i])
     np.testing.assert_allclose(bonds.length, np.linalg.norm(bonds.xi, axis=1), rtol=1e-15)
     assert bonds.h == 1.0 and bonds.delta_max == 2.2 and bonds.rule == "linear"
+
+
+@pytest.mark.parametrize("particles, m", [(bp.grid_2d(12.0, 9.0, 1.0), m) for m in (1.0, 2.0, 3.0, 4.2)]
+                         + [(bp.grid_2d(7.5, 12.5, 0.5, origin=(-3.0, 1.0)), 3.0), (bp.grid_3d(6.0, 5.0, 4.0, 1.0), 2.0),
+                            (bp.grid_3d(3.0, 2.5, 2.0, 0.25, origin=(1.0, 2.0, 3.0)), 2.2)])
+def test_a_box_lattice_gets_the_pairs_by_stencil_and_they_are_the_searchs(particles, m):
+    """On ``grid_2d`` / ``grid_3d`` boxes (either axis order, off-origin, a horizon between lattice
+    distances) the stencil path finds the brute-force pairs, sorted by (i, j)."""
+    pairs = _lattice_pairs(particles.x, particles.h, (m + 0.5) * particles.h)
+    assert pairs is not None
+    assert list(zip(*(a.tolist() for a in pairs))) == sorted(brute_force_pairs(particles.x, (m + 0.5) * particles.h))
+
+
+def test_what_is_not_a_box_lattice_goes_to_the_search():
+    """Jittered, shuffled or non-box point sets, and a horizon whose radius equals a lattice distance
+    (m = 2.5: 3 h, a tie the k-d tree's rounding decides), are left to the k-d tree; find_bonds then
+    gives the same pairs as on the lattice itself wherever there is no tie."""
+    p = bp.grid_2d(10.0, 8.0, 1.0)
+    rng = np.random.default_rng(0)
+    shuffled = rng.permutation(p.n)
+    corner = p.x.sum(1) < 12
+    for x in (p.x + rng.normal(0.0, 1e-3, p.x.shape), p.x[shuffled], p.x[corner]):
+        assert _lattice_pairs(x, 1.0, 2.5) is None
+    assert _lattice_pairs(p.x, 1.0, 3.0) is None
+    moved = bp.find_bonds(bp.from_points(p.x[shuffled], p.volume, h=1.0), 2.0)
+    on = bp.find_bonds(p, 2.0)
+    assert {(min(a, b), max(a, b)) for a, b in zip(shuffled[moved.i], shuffled[moved.j])} == set(zip(on.i, on.j))
 
 
 def test_neighbour_counts_are_symmetric_on_a_lattice():
