@@ -68,8 +68,9 @@ RULES = ("linear", "smooth")  # partial-volume ramps in delta (see partial_volum
 
 @without_huge_pages()
 def find_bonds(particles: Particles, delta_max: float, rule: str = "linear") -> Bonds:
-    """All pairs closer than ``delta_max + h/2``, found once with a k-d tree; ``rule``: the
-    partial-volume ramp in delta (see :func:`partial_volume`)."""
+    """All pairs closer than ``delta_max + h/2``, found once: by the stencil on a box lattice
+    (``_lattice_pairs``), else with a k-d tree; ``rule``: the partial-volume ramp in delta (see
+    :func:`partial_volume`)."""
     if rule not in RULES:
         raise ValueError(f"unknown partial-volume rule {rule!r}: use one of {RULES}")
     h = particles.h
@@ -97,8 +98,8 @@ def _lattice_pairs(x: np.ndarray, h: float, radius: float):
     counts = idx.max(0) + 1
     if np.abs(low + idx * h - x).max() > 1e-6 * h or np.prod(counts) != n:
         return None
-    strides = next((s for s in map(_strides, itertools.permutations(range(d)), itertools.repeat(counts))
-                    if np.array_equal(idx @ s, np.arange(n))), None)
+    orders = (_strides(order, counts) for order in itertools.permutations(range(d)))
+    strides = next((s for s in orders if np.array_equal(idx @ s, np.arange(n))), None)
     reach = int(radius / h)
     offsets = np.stack(np.meshgrid(*[np.arange(-reach, reach + 1)] * d, indexing="ij"), -1).reshape(-1, d)
     squared = (offsets**2).sum(1) * (h * h)

@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import argparse
 import os
-import time
 
 import numpy as np
 import torch
+
+from timing import best_with_cpu
 
 H, DELTA = 5.0, 12.5
 
@@ -37,17 +38,6 @@ def scene():
             lambda t: 2.0 * t * side)
 
 
-def seconds_per_run(f, runs: int, repeat: int) -> tuple[float, float]:
-    """(wall, CPU) seconds per run of the fastest of ``repeat`` calls of f (after a warm-up)."""
-    f()
-    best = (np.inf, np.inf)
-    for _ in range(repeat):
-        t, c = time.perf_counter(), time.process_time()
-        f()
-        best = min(best, ((time.perf_counter() - t) / runs, (time.process_time() - c) / runs))
-    return best
-
-
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=64)
@@ -61,13 +51,14 @@ def main():
     widths = np.resize([0.05, 0.1, 0.2, 0.4, 0.8], args.runs)
     print(f"load {os.getloadavg()[0]:.2f}; {material.particles.n} nodes, {len(material.i)} bonds, {args.runs} runs")
     torch.set_num_threads(1)
-    wall, cpu = seconds_per_run(lambda: [forward_run(material, params, rho, frames, s, pulled, moving, eta_over_s0=w)
-                                         for s, w in zip(s0s, widths)], args.runs, args.repeat)
+    wall, cpu = np.divide(best_with_cpu(lambda: [forward_run(material, params, rho, frames, s, pulled, moving, eta_over_s0=w)
+                                                 for s, w in zip(s0s, widths)], args.repeat), args.runs)
     print(f"one forward_run each            wall {wall:.4f} s/run  CPU {cpu:.4f} s/run")
     for threads in args.threads:
         for batch in args.batch:
-            wall, cpu = seconds_per_run(lambda: forward_runs(material, params, rho, frames, s0s, widths, pulled, moving,
-                                                             batch=batch, threads=threads), args.runs, args.repeat)
+            wall, cpu = np.divide(best_with_cpu(lambda: forward_runs(material, params, rho, frames, s0s, widths, pulled,
+                                                                     moving, batch=batch, threads=threads), args.repeat),
+                                  args.runs)
             print(f"forward_runs batch {batch:3d} threads {threads}  wall {wall:.4f} s/run  CPU {cpu:.4f} s/run")
 
 

@@ -361,19 +361,22 @@ def _predictive(sc: Scene, runs, crack: _CrackLengths, name: str, end: int, late
     pick, shape = chosen // len(growth), chosen % len(growth)
     level, gamma = np.sqrt(sse[pick, shape] / values), growth[shape]
     data = sc.u[late][:, free]
-    pred = np.stack([u + _error_sd(u, t[late], a, g, relative, t[end - 1]) * rng.standard_normal(data.shape)
-                     for u, a, g in zip((runs[k].u[late][:, free] for k in pick), level, gamma)])
+    pred = _draws((runs[k].u[late][:, free] for k in pick), t[late], level, gamma, relative, t[end - 1], rng)
     fitted = {"n": int(n)}
     if len(growth) > 1:
         fitted["growth_exponent_posterior"] = dict(zip(growth.tolist(), joint.reshape(len(runs), -1).sum(0).tolist()))
     return _Prediction(joint.reshape(len(runs), -1).sum(1), pick, pred, data, fitted, level, gamma, relative)
 
 
-def _error_sd(u, times, level: float, growth: float, relative: bool, t_fit: float):
-    """A draw's error sd per frame (F, 1, 1) for its run's displacements u (F, n, 2) at ``times``."""
-    if not relative:
-        return np.full((len(u), 1, 1), level)
-    return level * (np.sqrt((u**2).mean((1, 2))) * (times / t_fit) ** growth)[:, None, None]
+def _draws(runs_u, times, level, growth, relative: bool, t_fit: float, rng) -> np.ndarray:
+    """Predictive draws: each run's displacements u (F, n, 2) at ``times`` plus an independent
+    error per value of sd ``level`` (A), or for ``relative`` models ``level`` times the frame's rms
+    of u times (t / t_fit)^growth."""
+    def sd(u, a, g):
+        if not relative:
+            return np.full((len(u), 1, 1), a)
+        return a * (np.sqrt((u**2).mean((1, 2))) * (times / t_fit) ** g)[:, None, None]
+    return np.stack([u + sd(u, a, g) * rng.standard_normal(u.shape) for u, a, g in zip(runs_u, level, growth)])
 
 
 def _elsewhere(other: Scene, scale: float, grid, fits: dict, t_fit: float, rng) -> dict:
@@ -391,9 +394,7 @@ def _elsewhere(other: Scene, scale: float, grid, fits: dict, t_fit: float, rng) 
     data = other.u[1:, free]
     out = {}
     for name, fit in fits.items():
-        pred = [runs[k].u[1:, free] for k in fit.pick]
-        pred = np.stack([u + _error_sd(u, t, a, g, fit.relative, t_fit) * rng.standard_normal(data.shape)
-                         for u, a, g in zip(pred, fit.level, fit.growth)])
+        pred = _draws((runs[k].u[1:, free] for k in fit.pick), t, fit.level, fit.growth, fit.relative, t_fit, rng)
         lo, hi = np.quantile(pred, [ALPHA / 2, 1 - ALPHA / 2], axis=0)
         out[name] = {"band90_node_frame_coverage": float(_inside(data, lo, hi).mean()),
                      **_history_intervals([histories[k] for k in fit.pick], md)}
