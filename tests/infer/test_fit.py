@@ -55,7 +55,9 @@ def model(y=None):
 
 @pytest.fixture(scope="module")
 def nuts(y):
-    return fit(model, {"y": y}, num_samples=DRAWS, num_warmup=DRAWS, num_chains=2, progress=False)
+    """Two chains in this process (test_mcmc checks the worker processes give the same bits)."""
+    return fit(model, {"y": y}, num_samples=DRAWS, num_warmup=DRAWS, num_chains=2, chains="sequential",
+               progress=False)
 
 
 def check_moments(draws, mean, sd, mean_tol):
@@ -234,6 +236,7 @@ def test_fit_rejects_unknown_method(y):
         fit(model, {"y": y}, method="gibbs")
 
 
+@pytest.mark.slow  # HMC also runs through fit by name and settings in the default set (test_method)
 def test_hmc_recovers_conjugate_posterior(y, exact):
     tree = fit(model, {"y": y}, "hmc", trajectory_length=1.0, num_samples=DRAWS, num_warmup=150,
                num_chains=2, chains="sequential", progress=False)

@@ -15,6 +15,7 @@ from bayespd.infer import HMC, METHODS, NUTS, SVI, Draws, Laplace, Method, fit, 
 from tests.infer.test_fit import HIGH, LOW, N, PRIOR_SD, model
 
 Y = {"y": 1.5 + torch.randn(N, generator=torch.Generator().manual_seed(0))}
+DRAWS = 400  # per chain of the prior sampler: 800 independent draws, the checks below at 4 standard errors
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -97,17 +98,18 @@ def test_a_registered_method_runs_through_fit(prior_registered):
     replay and DataTree of every method; its draws follow the prior (mu ~ N(0, 10^2): mean and
     sd within 4 standard errors; h on [LOW, HIGH] with the ScaledBeta(2, 2) mean)."""
     assert prior_registered is Prior and METHODS["prior"] is Prior
-    tree = fit(model, Y, "prior", num_samples=1000, num_chains=2, seed=1, progress=False)
+    tree = fit(model, Y, "prior", num_samples=DRAWS, num_chains=2, seed=1, progress=False)
     mu, h = tree["posterior"]["mu"].values.reshape(-1), tree["posterior"]["h"].values.reshape(-1)
-    assert abs(mu.mean()) < 4 * PRIOR_SD / 2000**0.5
-    assert abs(mu.std() / PRIOR_SD - 1) < 4 / (2 * 2000) ** 0.5
-    assert LOW < h.min() and h.max() < HIGH and abs(h.mean() - (LOW + HIGH) / 2) < 4 * h.std() / 2000**0.5
+    n = 2 * DRAWS
+    assert abs(mu.mean()) < 4 * PRIOR_SD / n**0.5
+    assert abs(mu.std() / PRIOR_SD - 1) < 4 / (2 * n) ** 0.5
+    assert LOW < h.min() and h.max() < HIGH and abs(h.mean() - (LOW + HIGH) / 2) < 4 * h.std() / n**0.5
     np.testing.assert_allclose(tree["posterior"]["two_mu"], 2 * tree["posterior"]["mu"])  # replayed deterministic
     expected = stats.norm(mu[:, None], 1.0).logpdf(Y["y"].numpy()[None])
     np.testing.assert_allclose(tree["log_likelihood"]["y"].values.reshape(-1, N), expected, rtol=1e-12)
     assert tree.attrs["method"] == "prior" and tree.attrs["prior_only"] == 1
     assert json.loads(tree.attrs["settings"])["num_chains"] == 2
-    same_tree(tree, fit(model, Y, Prior(num_samples=1000, num_chains=2, seed=1, progress=False)))
+    same_tree(tree, fit(model, Y, Prior(num_samples=DRAWS, num_chains=2, seed=1, progress=False)))
     with pytest.raises(TypeError, match="num_warmup: not a setting of method 'prior'.*num_chains"):
         fit(model, Y, "prior", num_warmup=10)
     with pytest.raises(ValueError, match="registered already"):

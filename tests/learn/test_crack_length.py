@@ -66,13 +66,14 @@ def test_fitted_frames_start_before_md_cracks():
 
 def test_forecast_moments():
     """Mean l_t, sd sqrt(E[sigma^2 | e]) = sqrt(S / (n - 2)) (the untruncated posterior; q is far
-    below it here): 20,000 draws give the mean to 4 sd / sqrt(20000) and the sd to 2 % (the
-    scale mixture's sd has a standard error of about 1 % here)."""
+    below it here): 5,000 draws give the mean to 4 sd / sqrt(5000) and the sd to 4 % (the scale
+    mixture's sd has a standard error of about 2 % here; sqrt(S / n), the plug-in scale, is 15 %
+    smaller)."""
     e = fitted_errors(MD, EARLY, 15, 21)
     sd = np.sqrt(e @ e / (e.size - 2))
-    draws = np.stack([forecast(np.random.default_rng(k), MD, EARLY, 15, 21, Q) for k in range(20000)])
-    np.testing.assert_allclose(draws.mean(0), EARLY[21:], atol=4 * sd / np.sqrt(20000))
-    np.testing.assert_allclose(draws.std(0), sd, rtol=0.02)
+    draws = np.stack([forecast(np.random.default_rng(k), MD, EARLY, 15, 21, Q) for k in range(5000)])
+    np.testing.assert_allclose(draws.mean(0), EARLY[21:], atol=4 * sd / np.sqrt(5000))
+    np.testing.assert_allclose(draws.std(0), sd, rtol=0.04)
 
 
 def test_bad_input_is_named():
