@@ -179,7 +179,7 @@ def phase_two(kernel, quick, out, surface: bool, diagnostics: bool = True):
     finer = scene(np.load(source / "coarse_h3.17_weno.npz"), fracture, fine, FINE, pulled=True, surface=surface)
     tests["grid_3.17A"] = evaluate(finer, s0_fine)
     for name, test in tests.items():
-        print(name, {k: v for k, v in test.items() if not k.startswith("crack")}, flush=True)
+        print(name, {k: v for k, v in test.items() if not k.startswith("crack") and not k.endswith("diagnosis")}, flush=True)
     posterior = None
     if diagnostics:
         t = time.perf_counter()

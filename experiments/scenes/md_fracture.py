@@ -184,6 +184,24 @@ def damage_diagnosis(sc: Scene, run, frames=slice(None), lags=range(-3, 4), shif
             "straight_crack_md_tip_vs_md_with_slit_whole_record": error(*with_slit, over=slice(None))}
 
 
+def displacement_diagnosis(sc: Scene, run, near: float | None = None) -> dict:
+    """Where a run's displacement error on the free nodes comes from, per frame from frame 1: MD's
+    field as a multiple of the run's, a_t = <u_md, u_pd> / <u_pd, u_pd> (a sheet more compliant than
+    the model's, > 1); the relative error |u_pd - u_md| / |u_md| of the nodes within ``near``
+    (default delta) of the slit line and of the others; and that of a_t u_pd (what is left when the
+    amplitude is right)."""
+    free = ~sc.fixed
+    x = sc.material.particles.x[free]
+    band = np.abs(x[:, 0] - sc.slit_x) <= (float(sc.params["delta"]) if near is None else near)
+    u, u_md = run.u[1:, free], sc.u[1:, free]
+    factor = np.einsum("fnc,fnc->f", u_md, u) / np.einsum("fnc,fnc->f", u, u)
+
+    def error(pred, nodes=slice(None)):
+        return (np.linalg.norm((pred - u_md)[:, nodes], axis=(1, 2)) / np.linalg.norm(u_md[:, nodes], axis=(1, 2))).tolist()
+    return {"md_over_pd_factor": factor.tolist(), "rel_error_near_slit_line": error(u, band),
+            "rel_error_elsewhere": error(u, ~band), "rel_error_after_factor": error(factor[:, None, None] * u)}
+
+
 def pd_tip(sc: Scene, run) -> np.ndarray:
     """PD crack tip height per frame: the highest midpoint of the bonds with gamma < 1/2."""
     x, b = sc.material.particles.x, sc.material.bonds
@@ -197,6 +215,7 @@ def evaluate(sc: Scene, s0, frames=slice(None)) -> dict:
     wall = time.perf_counter() - t
     return {"s0": s0, "wall_time_s": wall, "steps": run.steps, "dt_ps": run.dt, "frames": metrics(sc, run, frames),
             "whole_record": metrics(sc, run), "damage_diagnosis": damage_diagnosis(sc, run, frames),
+            "displacement_diagnosis": displacement_diagnosis(sc, run),
             "crack_pd": crack_history(sc.time, pd_tip(sc, run)),
             "crack_md": crack_history(sc.time, sc.tip)}
 

@@ -1,12 +1,12 @@
 """The damage posterior (bayespd.scenes.md_fracture): its zoomed s0 grid, and its bands carried to
-another scene."""
+another scene; the displacement error's diagnosis."""
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 from scipy import stats
 
-from bayespd.scenes.md_fracture import _elsewhere, _Prediction, _zoom
+from bayespd.scenes.md_fracture import _elsewhere, _Prediction, _zoom, displacement_diagnosis
 
 S0 = np.exp(np.linspace(np.log(0.01), np.log(1.0), 61))
 
@@ -59,3 +59,30 @@ def test_bands_carried_to_another_scene_hold_their_level(relative):
     assert carried()["crack_initiation_ps"]["runs_without_crack"] == draws  # nor has MD: nothing to compare
     fit.level = 2 * fit.level
     assert carried()["band90_node_frame_coverage"] > 0.95
+
+
+def test_the_displacement_diagnosis_separates_amplitude_and_place():
+    """MD's field 1.5 times the run's: the factor is 1.5, the error 1/3 of MD's field beside the slit
+    line and away from it, and nothing is left after the factor. MD's field the run's plus 0.2 A
+    beside the line and 1.5 times it away: the error away is 1/3, the one beside it the 0.2 A."""
+    rng = np.random.default_rng(4)
+    frames, nodes = 5, 60
+    x = np.column_stack([np.linspace(-30.0, 30.0, nodes), np.zeros(nodes)])
+    band = np.abs(x[:, 0] - 0.5) <= 10.0
+    u = np.concatenate([np.zeros((1, nodes, 2)), rng.normal(1.0, 0.3, (frames - 1, nodes, 2))])
+
+    def diagnosis(u_md):
+        sc = SimpleNamespace(fixed=np.zeros(nodes, bool), slit_x=0.5, params={"delta": 10.0}, u=u_md,
+                             material=SimpleNamespace(particles=SimpleNamespace(x=x)))
+        return displacement_diagnosis(sc, SimpleNamespace(u=u))
+    out = diagnosis(1.5 * u)
+    np.testing.assert_allclose(out["md_over_pd_factor"], 1.5, rtol=1e-14)
+    for key in ("rel_error_near_slit_line", "rel_error_elsewhere"):
+        np.testing.assert_allclose(out[key], 1 / 3, rtol=1e-12)
+    np.testing.assert_allclose(out["rel_error_after_factor"], 0.0, atol=1e-14)
+    assert len(out["md_over_pd_factor"]) == frames - 1
+    u_md = np.where(band[None, :, None], u + 0.2, 1.5 * u)
+    out = diagnosis(u_md)
+    np.testing.assert_allclose(out["rel_error_elsewhere"], 1 / 3, rtol=1e-12)
+    near = np.linalg.norm(np.full((band.sum(), 2), 0.2)) / np.linalg.norm(u_md[1:, band], axis=(1, 2))
+    np.testing.assert_allclose(out["rel_error_near_slit_line"], near, rtol=1e-12)
