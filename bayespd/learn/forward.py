@@ -148,10 +148,11 @@ def forward_run(material, params: dict, rho, frames, s0: float | None = None, pr
 
 
 def forward_runs(material, params: dict, rho, frames, s0s, eta_over_s0s=ETA_OVER_S0, prescribed=None, moving=None,
-                 v0=None, body=None, safety: float = 0.5, batch: int = 32, threads: int | None = None) -> list[ForwardRun]:
-    """``forward_run`` (the exact-kinematics force; eq 3.18 reads the body's own coordinates, so not
-    that) at each pair (s0s[k], eta_over_s0s[k]), with the
-    body's own step: equal batches of at most ``batch`` pairs, each one run of ``material.copies``
+                 v0=None, body=None, safety: float = 0.5, surface=False, batch: int = 32,
+                 threads: int | None = None) -> list[ForwardRun]:
+    """``forward_run`` at each pair (s0s[k], eta_over_s0s[k]), with the body's own step (``surface``
+    as ``forward_run``'s, a ``free(sites)`` asked about each copy's sites at the body's own
+    coordinates): equal batches of at most ``batch`` pairs, each one run of ``material.copies``
     (copy c's bonds under pair c's law), the batches side by side on ``threads`` threads (None: the
     cores this process may use; ``bond_loops.claimed``) with one torch thread each (restored
     after). Each run's numbers are its own ``forward_run``'s to the bit; a step's fixed cost is
@@ -165,6 +166,7 @@ def forward_runs(material, params: dict, rho, frames, s0s, eta_over_s0s=ETA_OVER
     dt = _time_step(material, params, _mass(material, rho), safety)
     rho = np.broadcast_to(np.asarray(rho, float), (n,))
     threads = threads or len(os.sched_getaffinity(0))
+    free = _per_copy(surface, material)
     batches = np.array_split(np.arange(len(s0s)), min(len(s0s), -(-len(s0s) // (batch * threads)) * threads))
 
     def task(t: int) -> list[ForwardRun]:
@@ -172,7 +174,7 @@ def forward_runs(material, params: dict, rho, frames, s0s, eta_over_s0s=ETA_OVER
         k = len(pick)
         tiled = [None if a is None else np.tile(a, (k,) + (1,) * (np.ndim(a) - 1)) for a in (rho, prescribed, v0)]
         run = forward_run(material.copies(k), params, tiled[0], frames, np.repeat(s0s[pick], bonds), tiled[1],
-                          _tiled_in_time(moving, k), tiled[2], _tiled_in_time(body, k),
+                          _tiled_in_time(moving, k), tiled[2], _tiled_in_time(body, k), surface=free,
                           eta_over_s0=np.repeat(widths[pick], bonds), dt=dt, track_energy=False)
         return [ForwardRun(run.t, run.u[:, c * n:(c + 1) * n], run.phi[:, c * n:(c + 1) * n],
                            run.intact[:, c * bonds:(c + 1) * bonds], None, run.dt, run.steps, run.wall_time_s / k)
@@ -183,6 +185,21 @@ def forward_runs(material, params: dict, rho, frames, s0s, eta_over_s0s=ETA_OVER
         return [run for runs in bond_loops.claimed(task, len(batches), threads, redo=False) for run in runs]
     finally:
         torch.set_num_threads(before)
+
+
+def _per_copy(surface, material):
+    """``surface`` for ``material.copies``: a ``free(sites)`` asked at each site moved back into
+    the body's own coordinates (its copy c moved by -c ``copy_shift`` along x); True, False as given."""
+    if isinstance(surface, bool):
+        return surface
+    shift, start = material.copy_shift, material.particles.x[:, 0].min()
+    start -= (shift - np.ptp(material.particles.x[:, 0])) / 2  # halfway between copy -1 and copy 0
+
+    def free(sites):
+        sites = np.array(sites, float)
+        sites[:, 0] -= shift * np.floor((sites[:, 0] - start) / shift)
+        return surface(sites)
+    return free
 
 
 def _tiled_in_time(field, k: int):

@@ -73,12 +73,19 @@ class Material(ABC):
 
     def copies(self, k: int) -> "Material":
         """``k`` copies of this body side by side as one body, no bond between them (particle
-        c n + p is copy c's p): one run of it is k runs of the body, e.g. at k damage laws."""
+        c n + p is copy c's p moved by c ``copy_shift`` along x): one run of it is k runs of the
+        body, e.g. at k damage laws."""
         p = self.particles
-        gap = np.ptp(p.x[:, 0]) + p.h + 2 * self.bonds.delta_max
-        x = np.concatenate([p.x + np.eye(self.dim)[0] * gap * c for c in range(k)])
+        x = np.concatenate([p.x + np.eye(self.dim)[0] * self.copy_shift * c for c in range(k)])
         return type(self)(Particles(x, np.tile(p.volume, k), p.h, p.thickness), self.bonds.tiled(k, p.n), self.plane,
                           self.influence, self.surface_correction)
+
+    @property
+    def copy_shift(self) -> float:
+        """The x distance between ``copies``: the body's width, a step h and two horizons, in whole
+        steps h (copies of a lattice lie on one lattice)."""
+        p = self.particles
+        return p.h * float(np.ceil((np.ptp(p.x[:, 0]) + p.h + 2 * self.bonds.delta_max) / p.h))
 
     def grams(self) -> list[Gram]:
         """The Gram operators of the stiffness terms; the bond extensions B first."""

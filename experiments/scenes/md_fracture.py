@@ -66,12 +66,9 @@ class Scene:
                            surface=self.surface, eta_over_s0=eta_over_s0)
 
     def runs(self, s0s, eta_over_s0s) -> list:
-        """Full-record runs at each pair (s0, eta / s0): batched (``forward_runs``), or one at a time
-        under eq 3.18 (its free-surface test reads the body's own coordinates)."""
-        if self.surface is not False:
-            return [self.run(s, eta_over_s0=r) for s, r in zip(s0s, eta_over_s0s)]
+        """Full-record runs at each pair (s0, eta / s0), batched (``forward_runs``)."""
         return forward_runs(self.material, self.params, self.rho, self.time, s0s, eta_over_s0s, self.fixed,
-                            self.moving, self.v0, self.body)
+                            self.moving, self.v0, self.body, surface=self.surface)
 
 
 def scene(coarse, record, kernel: dict, h: float, pulled: bool, surface: bool = False) -> Scene:

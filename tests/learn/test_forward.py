@@ -122,6 +122,32 @@ def test_batched_runs_are_the_single_runs_bit_for_bit():
     assert min(broken) > 0 and len(set(broken)) >= 3
 
 
+@pytest.mark.parametrize("free_sites", ["pulled columns are collar", "all free"])
+def test_batched_runs_under_eq_3_18_are_the_single_runs_bit_for_bit(free_sites):
+    """The edge-slit sheet pulled by its side columns under eq 3.18 (``surface``: the sites beyond
+    the pulled columns a collar moving with them, or every missing site free), three laws in
+    batches of at most two on two threads: each run equals its own forward_run bit for bit (each
+    copy's sites are judged at the body's own coordinates), and the two readings of the sites
+    differ (the collar is seen)."""
+    x, material = grid(12, 8)
+    material = type(material)(material.particles, precrack(material.particles, material.bonds, [[27.5, -1.0], [27.5, 12.5]]),
+                              plane="strain", influence=Bernstein(3))
+    pulled = (x[:, 0] < H / 2) | (x[:, 0] > x[:, 0].max() - H / 2)
+    side = np.sign(x[:, 0] - x[:, 0].mean())[:, None] * np.array([1.0, 0.0])
+    lo, hi = x[:, 0].min() - H / 2, x[:, 0].max() + H / 2
+    surface = (lambda sites: (sites[:, 0] > lo) & (sites[:, 0] < hi)) if free_sites.startswith("pulled") else True
+    moving, frames = (lambda t: 2.0 * t * side), np.linspace(0.0, 0.5, 6)
+    s0s, widths = np.array([0.01, 0.014, 0.02]), np.array([0.05, 0.2, 0.8])
+    runs = forward_runs(material, PARAMS, RHO, frames, s0s, widths, pulled, moving, surface=surface, batch=2, threads=2)
+    for run, s0, width in zip(runs, s0s, widths):
+        one = forward_run(material, PARAMS, RHO, frames, s0, pulled, moving, surface=surface, eta_over_s0=width)
+        for a, b in ((run.u, one.u), (run.phi, one.phi), (run.intact, one.intact)):
+            assert np.array_equal(a, b)
+    other = forward_run(material, PARAMS, RHO, frames, s0s[0], pulled, moving, eta_over_s0=widths[0],
+                        surface=True if surface is not True else (lambda sites: (sites[:, 0] > lo) & (sites[:, 0] < hi)))
+    assert np.abs(other.u[-1] - runs[0].u[-1]).max() > 1e-6 * np.abs(runs[0].u[-1]).max()
+
+
 def test_prescribed_history_is_linear_between_frames():
     at = linear_in_time([0.0, 1.0, 3.0], np.array([[0.0], [2.0], [0.0]]))
     np.testing.assert_allclose([at(0.5)[0], at(2.0)[0], at(5.0)[0]], [1.0, 1.0, 0.0])
