@@ -35,6 +35,7 @@ damage law reads the exact stretch (eq 3.16), as in ``bayespd.learn.forward``.
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse
 import torch
 from scipy.spatial import cKDTree
 
@@ -74,17 +75,16 @@ class FreeSurface:
         self.KW = np.concatenate([K * W * V[j], K * W * V[i], g_K * g_W])
         self.W = np.concatenate([W * V[j], W * V[i], g_W])
         self.r2 = (self.xi**2).sum(1)
+        ends = len(self.owner)
+        self.sums = scipy.sparse.csr_matrix((np.ones(ends), (self.owner, np.arange(ends))), shape=(n, ends))
         self.m = self._sum(self.KW * self.r2)
         if np.any(self.m <= 0):
             raise ValueError("a node has a non-positive weighted volume m: use a non-negative influence function")
         self.pairs = self.xi[:, :, None] * self.xi[:, None, :]  # xi (x) xi per end
 
     def _sum(self, values: np.ndarray) -> np.ndarray:
-        """Per-node sum over the ends owned, for values (E,) or (E, ...)."""
-        if values.ndim == 1:
-            return np.bincount(self.owner, values, self.n)
-        flat = values.reshape(len(values), -1)
-        return np.stack([np.bincount(self.owner, c, self.n) for c in flat.T], 1).reshape(self.n, *values.shape[1:])
+        """Per-node sum over the ends owned, for values (E,) or (E, ...): one sparse product."""
+        return (self.sums @ values.reshape(len(values), -1)).reshape(self.n, *values.shape[1:])
 
     def _gamma(self, intact) -> np.ndarray:
         g = np.ones(self.bonds) if intact is None else np.asarray(intact, float)
