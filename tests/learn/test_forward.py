@@ -135,7 +135,10 @@ def test_batched_runs_under_eq_3_18_are_the_single_runs_bit_for_bit(free_sites):
     pulled = (x[:, 0] < H / 2) | (x[:, 0] > x[:, 0].max() - H / 2)
     side = np.sign(x[:, 0] - x[:, 0].mean())[:, None] * np.array([1.0, 0.0])
     lo, hi = x[:, 0].min() - H / 2, x[:, 0].max() + H / 2
-    surface = (lambda sites: (sites[:, 0] > lo) & (sites[:, 0] < hi)) if free_sites.startswith("pulled") else True
+
+    def collar(sites):
+        return (sites[:, 0] > lo) & (sites[:, 0] < hi)
+    surface = collar if free_sites.startswith("pulled") else True
     moving, frames = (lambda t: 2.0 * t * side), np.linspace(0.0, 0.5, 6)
     s0s, widths = np.array([0.01, 0.014, 0.02]), np.array([0.05, 0.2, 0.8])
     runs = forward_runs(material, PARAMS, RHO, frames, s0s, widths, pulled, moving, surface=surface, batch=2, threads=2)
@@ -144,7 +147,7 @@ def test_batched_runs_under_eq_3_18_are_the_single_runs_bit_for_bit(free_sites):
         for a, b in ((run.u, one.u), (run.phi, one.phi), (run.intact, one.intact)):
             assert np.array_equal(a, b)
     other = forward_run(material, PARAMS, RHO, frames, s0s[0], pulled, moving, eta_over_s0=widths[0],
-                        surface=True if surface is not True else (lambda sites: (sites[:, 0] > lo) & (sites[:, 0] < hi)))
+                        surface=True if surface is collar else collar)
     assert np.abs(other.u[-1] - runs[0].u[-1]).max() > 1e-6 * np.abs(runs[0].u[-1]).max()
 
 
