@@ -188,18 +188,11 @@ def forward_runs(material, params: dict, rho, frames, s0s, eta_over_s0s=ETA_OVER
 
 
 def _per_copy(surface, material):
-    """``surface`` for ``material.copies``: a ``free(sites)`` asked at each site moved back into
-    the body's own coordinates (its copy c moved by -c ``copy_shift`` along x); True, False as given."""
+    """``surface`` for ``material.copies``: a ``free(sites)`` asked at the sites moved back into the
+    body (``Material.in_body``); True, False as given."""
     if isinstance(surface, bool):
         return surface
-    shift, start = material.copy_shift, material.particles.x[:, 0].min()
-    start -= (shift - np.ptp(material.particles.x[:, 0])) / 2  # halfway between copy -1 and copy 0
-
-    def free(sites):
-        sites = np.array(sites, float)
-        sites[:, 0] -= shift * np.floor((sites[:, 0] - start) / shift)
-        return surface(sites)
-    return free
+    return lambda sites: surface(material.in_body(sites))
 
 
 def _tiled_in_time(field, k: int):

@@ -75,8 +75,8 @@ class Material(ABC):
         """``k`` copies of this body side by side as one body, no bond between them (particle
         c n + p is copy c's p moved by c ``copy_shift`` along x): one run of it is k runs of the
         body, e.g. at k damage laws."""
-        p = self.particles
-        x = np.concatenate([p.x + np.eye(self.dim)[0] * self.copy_shift * c for c in range(k)])
+        p, shift = self.particles, self.copy_shift
+        x = np.concatenate([p.x + np.eye(self.dim)[0] * shift * c for c in range(k)])
         return type(self)(Particles(x, np.tile(p.volume, k), p.h, p.thickness), self.bonds.tiled(k, p.n), self.plane,
                           self.influence, self.surface_correction)
 
@@ -86,6 +86,15 @@ class Material(ABC):
         steps h (copies of a lattice lie on one lattice)."""
         p = self.particles
         return p.h * float(np.ceil((np.ptp(p.x[:, 0]) + p.h + 2 * self.bonds.delta_max) / p.h))
+
+    def in_body(self, points) -> np.ndarray:
+        """Points (M, dim) about ``copies`` moved back by their copy's shift: the same places in
+        this body's coordinates (a copy owns the space up to halfway to its neighbours)."""
+        x, shift = self.particles.x[:, 0], self.copy_shift
+        start = x.min() - (shift - np.ptp(x)) / 2
+        points = np.array(points, float)
+        points[:, 0] -= shift * np.floor((points[:, 0] - start) / shift)
+        return points
 
     def grams(self) -> list[Gram]:
         """The Gram operators of the stiffness terms; the bond extensions B first."""

@@ -181,15 +181,15 @@ def damage_diagnosis(sc: Scene, run, frames=slice(None), lags=range(-3, 4), shif
             "straight_crack_md_tip_vs_md_with_slit_whole_record": error(*with_slit, over=slice(None))}
 
 
-def displacement_diagnosis(sc: Scene, run, near: float | None = None) -> dict:
+def displacement_diagnosis(sc: Scene, run) -> dict:
     """Where a run's displacement error on the free nodes comes from, per frame from frame 1: MD's
     field as a multiple of the run's, a_t = <u_md, u_pd> / <u_pd, u_pd> (a sheet more compliant than
-    the model's, > 1); the relative error |u_pd - u_md| / |u_md| of the nodes within ``near``
-    (default delta) of the slit line and of the others; and that of a_t u_pd (what is left when the
+    the model's, > 1); the relative error |u_pd - u_md| / |u_md| of the nodes within delta of the
+    slit line and of the others; and that of a_t u_pd (what is left when the
     amplitude is right)."""
     free = ~sc.fixed
     x = sc.material.particles.x[free]
-    band = np.abs(x[:, 0] - sc.slit_x) <= (float(sc.params["delta"]) if near is None else near)
+    band = np.abs(x[:, 0] - sc.slit_x) <= float(sc.params["delta"])
     u, u_md = run.u[1:, free], sc.u[1:, free]
     factor = np.einsum("fnc,fnc->f", u_md, u) / np.einsum("fnc,fnc->f", u, u)
 

@@ -109,6 +109,20 @@ def test_copies_are_one_body_whose_stiffness_is_the_bodys_k_times_over(lattice, 
     assert np.all(many.bonds.i // p.n == many.bonds.j // p.n)
 
 
+def test_points_about_the_copies_map_back_into_the_body(lattice):
+    """``in_body``: each copy's particles, and points up to just short of halfway to the next copy,
+    land where they are in the body; the copies lie whole grid steps apart (one lattice)."""
+    p, bonds = lattice
+    mat = bp.LPS(p, bonds)
+    many, shift = mat.copies(3), mat.copy_shift
+    assert shift / p.h == round(shift / p.h) and shift >= np.ptp(p.x[:, 0]) + p.h + 2 * bonds.delta_max
+    np.testing.assert_allclose(mat.in_body(many.particles.x), np.tile(p.x, (3, 1)), atol=1e-12 * shift)
+    half = (shift - np.ptp(p.x[:, 0])) / 2
+    edges = np.array([[p.x[:, 0].min() - 0.99 * half, 0.0], [p.x[:, 0].max() + 0.99 * half, 0.0]])
+    for c in range(3):
+        np.testing.assert_allclose(mat.in_body(edges + [c * shift, 0.0]), edges, atol=1e-12 * shift)
+
+
 @pytest.mark.parametrize("law", LAWS)
 def test_stiffness_in_chosen_rows_is_those_rows_of_the_stiffness_with_their_gradient(lattice, law):
     """K's entries in a few rows (unsorted, repeated, a node's two dofs and one more) from the
